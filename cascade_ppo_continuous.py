@@ -20,11 +20,11 @@ from __future__ import annotations
 import math
 import os
 import random
-import sys
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Callable, Literal
+from typing import Literal
 
 import gymnasium as gym
 import numpy as np
