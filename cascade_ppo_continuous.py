@@ -419,6 +419,12 @@ def validate(args: Args) -> None:
     if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
         fail("--eval-every must be >= 0 and --eval-episodes >= 1")
     check_env_id(args.env_id)
+    probe = gym.make(args.env_id)
+    action_space = probe.action_space
+    probe.close()
+    if not isinstance(action_space, gym.spaces.Box):
+        fail(f"{args.env_id} has a {type(action_space).__name__} action space; this script needs a Box "
+             "(continuous) one: use cascade_ppo_discrete.py")
 
 
 def seed_everything(seed: int, torch_deterministic: bool) -> None:
@@ -437,10 +443,6 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
     envs = make_vector_env(args)
-    if not isinstance(envs.single_action_space, gym.spaces.Box):
-        envs.close()
-        fail(f"{args.env_id} has a {type(envs.single_action_space).__name__} action space; "
-             "this script needs a Box (continuous) one: use cascade_ppo_discrete.py")
     obs_dim = int(np.prod(envs.single_observation_space.shape))
     act_dim = int(np.prod(envs.single_action_space.shape))
 

@@ -1,0 +1,180 @@
+"""The Cascade net's math against a plain loop over the nets, parameter counts, gradients."""
+
+import math
+
+import gymnasium as gym
+import pytest
+import torch
+
+import cascade_ppo_continuous as cpc
+import ppo_baseline
+
+# Paper, Table 2 (v4 envs): actor of n=6 nets + critic, and the 64-64 PPO baseline.
+TABLE2_CASCADE = {"Ant-v4": 11286, "Walker2d-v4": 9470, "Hopper-v4": 8186, "Humanoid-v4": 68098,
+                  "HalfCheetah-v4": 9470}
+TABLE2_PPO = {"Ant-v4": 12497, "Walker2d-v4": 11085, "Hopper-v4": 10119, "Humanoid-v4": 57763,
+              "HalfCheetah-v4": 11085}
+
+
+def make_actor(n, obs_dim=5, act_dim=3, hidden=7, layers=2, fallback_init=0.5, randomize=True, seed=0):
+    torch.manual_seed(seed)
+    actor = cpc.CascadeActor(obs_dim, act_dim, hidden, layers, fallback_init)
+    for _ in range(n):
+        actor.add_base_net()
+    if randomize:  # move away from the init so fallbacks differ between nets and states
+        with torch.no_grad():
+            for p in actor.parameters():
+                p.normal_(0.0, 0.7)
+    return actor
+
+
+def reference_forward(actor, obs):
+    """Independent reference: evaluate each base net on its own, then apply the recursion
+    C_1 = b_1, C_i = l_i C_{i-1} + (1 - l_i) b_i one net at a time."""
+    means, log_stds, fallbacks = [], [], []
+    for i in range(actor.size):
+        h = obs
+        for w, b in zip(actor.hidden_weights, actor.hidden_biases):
+            h = torch.tanh(h @ w[i] + b[i, 0])
+        means.append(h @ actor.mean_weight[i] + actor.mean_bias[i, 0])
+        log_stds.append(actor.log_std[i].expand(obs.shape[0], -1))
+        if i > 0:
+            fallbacks.append(torch.sigmoid(h @ actor.fallback_weight[i - 1] + actor.fallback_bias[i - 1, 0]))
+    mean, log_std = means[0], log_stds[0]
+    share = torch.zeros(actor.size, obs.shape[0], 1)  # each net's weight in C, tracked through the recursion
+    share[0] = 1.0
+    for i in range(1, actor.size):
+        lam = fallbacks[i - 1]
+        mean = lam * mean + (1 - lam) * means[i]
+        log_std = lam * log_std + (1 - lam) * log_stds[i]
+        one_hot = torch.zeros_like(share)
+        one_hot[i] = 1.0
+        share = lam.unsqueeze(0) * share + (1 - lam).unsqueeze(0) * one_hot
+    fallback = torch.stack([f.squeeze(-1) for f in fallbacks]) if fallbacks else torch.zeros(0, obs.shape[0])
+    return mean, log_std, fallback, share.squeeze(-1), means
+
+
+@pytest.mark.parametrize("n,layers", [(1, 2), (2, 2), (3, 1), (6, 2), (8, 3)])
+def test_combination_matches_plain_loop(n, layers):
+    actor = make_actor(n, layers=layers, seed=n)
+    obs = torch.randn(64, 5) * 2
+    with torch.no_grad():
+        mean, log_std, fallback, weight = actor(obs)
+        ref_mean, ref_log_std, ref_fallback, ref_weight, _ = reference_forward(actor, obs)
+    torch.testing.assert_close(mean, ref_mean, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(log_std, ref_log_std, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(fallback, ref_fallback, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(weight, ref_weight, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(weight.sum(0), torch.ones(64))
+    if n > 1:
+        # w_1 is the fallback product; the randomized nets really mix (no net dominates everywhere)
+        torch.testing.assert_close(weight[0], fallback.prod(0), rtol=1e-5, atol=1e-6)
+        assert fallback.std() > 0.05
+
+
+def test_member_is_the_net_alone():
+    actor = make_actor(4)
+    obs = torch.randn(10, 5)
+    with torch.no_grad():
+        *_, ref_means = reference_forward(actor, obs)
+        for i in range(4):
+            mean, log_std = actor.member(obs, i)
+            torch.testing.assert_close(mean, ref_means[i], rtol=1e-5, atol=1e-5)
+            torch.testing.assert_close(log_std, actor.log_std[i].expand(10, -1))
+
+
+@pytest.mark.parametrize("fallback_init", [0.05, 0.5, 0.9])
+def test_new_net_starts_at_fallback_init(fallback_init):
+    actor = make_actor(4, fallback_init=fallback_init, randomize=False, hidden=16)
+    with torch.no_grad():
+        _, _, fallback, weight = actor(torch.randn(256, 5))
+    assert fallback.shape == (3, 256)
+    assert (fallback - fallback_init).abs().max() < 0.02
+    # the bottom net's share starts at fallback_init^(n-1)
+    assert abs(weight[0].mean().item() - fallback_init**3) < 0.02
+
+
+def test_growing_keeps_existing_nets():
+    actor = make_actor(2)
+    obs = torch.randn(16, 5)
+    before = {name: p.detach().clone() for name, p, _ in actor.base_net_parameters()}
+    actor.add_base_net()
+    assert actor.size == 3
+    for name, p, _ in actor.base_net_parameters():
+        old = before[name]
+        torch.testing.assert_close(p.detach()[: old.shape[0]], old)
+    with torch.no_grad():  # with the new net's fallback forced to 1, the output is the old ensemble
+        actor.fallback_bias[-1] = 50.0
+        actor.fallback_weight[-1] = 0.0
+        mean3, *_ = actor(obs)
+    small = make_actor(2)
+    with torch.no_grad():
+        mean2, *_ = small(obs)
+    torch.testing.assert_close(mean3, mean2, rtol=1e-5, atol=1e-5)
+
+
+def net_grad_norms(actor):
+    """Gradient norm of every base net (summed over all its parameters)."""
+    norms = torch.zeros(actor.size)
+    for _, p, first in actor.base_net_parameters():
+        if p.grad is None:
+            continue
+        for row in range(p.shape[0]):
+            norms[first + row] += p.grad[row].pow(2).sum()
+    return norms.sqrt()
+
+
+def test_gradients_reach_every_net():
+    actor = make_actor(4)
+    mean, log_std, _, _ = actor(torch.randn(32, 5))
+    (mean.pow(2).sum() + log_std.sum()).backward()
+    assert (net_grad_norms(actor) > 1e-6).all()
+
+
+def test_freeze_previous_trains_only_the_newest():
+    actor = make_actor(4)
+    actor.freeze_below(3)
+    frozen = {name: p.detach().clone() for name, p, _ in actor.base_net_parameters()}
+    optimizer = torch.optim.Adam(actor.parameters(), lr=1e-2, eps=1e-5)
+    for _ in range(3):
+        optimizer.zero_grad()
+        mean, log_std, _, _ = actor(torch.randn(32, 5))
+        (mean.pow(2).sum() + log_std.sum()).backward()
+        norms = net_grad_norms(actor)
+        assert (norms[:3] == 0).all() and norms[3] > 1e-6
+        optimizer.step()
+    for name, p, first in actor.base_net_parameters():
+        rows = 3 - first  # rows of this parameter that belong to nets 1..3
+        torch.testing.assert_close(p.detach()[:rows], frozen[name][:rows], rtol=0, atol=0)
+        assert not torch.equal(p.detach()[rows:], frozen[name][rows:])
+
+
+def env_dims(env_id):
+    env = gym.make(env_id)
+    return env.observation_space.shape[0], env.action_space.shape[0]
+
+
+@pytest.mark.parametrize("env_id", sorted(TABLE2_CASCADE))
+def test_parameter_counts_match_table2(env_id):
+    obs_dim, act_dim = env_dims(env_id)
+    actor = cpc.CascadeActor(obs_dim, act_dim, 16, 2, 0.5)
+    for _ in range(6):
+        actor.add_base_net()
+    assert cpc.count_parameters(actor, cpc.make_critic(obs_dim)) == TABLE2_CASCADE[env_id]
+    baseline = ppo_baseline.Actor(obs_dim, act_dim, 64)
+    assert ppo_baseline.count_parameters(baseline, ppo_baseline.make_critic(obs_dim)) == TABLE2_PPO[env_id]
+
+
+def test_gaussian_helpers_match_torch_normal():
+    mean, log_std, action = torch.randn(8, 3), torch.randn(8, 3) * 0.3, torch.randn(8, 3)
+    dist = torch.distributions.Normal(mean, log_std.exp())
+    torch.testing.assert_close(cpc.gaussian_log_prob(action, mean, log_std), dist.log_prob(action).sum(-1))
+    torch.testing.assert_close(cpc.gaussian_entropy(log_std), dist.entropy().sum(-1))
+
+
+def test_contributions_closed_form_small_case():
+    lam2, lam3 = 0.3, 0.8
+    w = cpc.contributions(torch.tensor([[[lam2]], [[lam3]]])).flatten()
+    expected = torch.tensor([lam2 * lam3, (1 - lam2) * lam3, 1 - lam3])
+    torch.testing.assert_close(w, expected)
+    assert math.isclose(w.sum().item(), 1.0, rel_tol=1e-6)
