@@ -17,9 +17,14 @@ RLJ 2025. See SPEC.md §2-§6 for every detail reproduced here.
 
 from __future__ import annotations
 
+import collections
+import copy
 import math
 import os
+import pickle
 import random
+import shutil
+import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -31,6 +36,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 import tyro
+from gymnasium.wrappers.utils import RunningMeanStd
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -110,6 +116,24 @@ class Args:
     """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
     eval_episodes: int = 10
     """episodes per evaluation (stochastic policy, frozen observation statistics)"""
+    eval_members: bool = True
+    """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`)"""
+
+    # Checkpoints, resuming, evaluating a saved model
+    checkpoint_every: int = 100_000
+    """also checkpoint every this many env steps, besides the end of every iteration (0: iteration ends only)"""
+    resume: str | None = None
+    """continue a killed run: `runs/<run_name>` or a checkpoint file; the saved settings are used"""
+    evaluate: str | None = None
+    """evaluate a saved model (`runs/<run_name>` or a checkpoint file) for --eval-episodes episodes and exit"""
+    deterministic: bool = False
+    """with --evaluate: act with the mean action instead of sampling"""
+    members: bool = False
+    """with --evaluate: also report the return of each base net acting alone"""
+    capture_video: bool = False
+    """with --evaluate: write an mp4 of one episode next to the checkpoint (needs MUJOCO_GL=egl or osmesa)"""
+    quiet: bool = False
+    """no progress display"""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -184,6 +208,35 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) 
         return obs.astype(np.float32)
     mean, var = stats
     return np.clip((obs - mean) / np.sqrt(var + NORM_EPS), -OBS_CLIP, OBS_CLIP).astype(np.float32)
+
+
+# Plain-data attributes of an env and its wrappers: step counters, episode statistics, running
+# normalization statistics, the env's RNG. Saved and restored so a resumed run continues the very
+# same trajectories (MuJoCo's simulation state, MjData, is saved whole).
+ENV_STATE_TYPES = (bool, int, float, np.ndarray, np.generic, np.random.Generator, RunningMeanStd, collections.deque)
+
+
+def env_state(env: gym.Env) -> dict:
+    layers, layer = [], env
+    while True:
+        layers.append({k: copy.deepcopy(v) for k, v in vars(layer).items() if isinstance(v, ENV_STATE_TYPES)})
+        if not isinstance(layer, gym.Wrapper):
+            break
+        layer = layer.env
+    sim = pickle.dumps(layer.data) if hasattr(layer, "data") and hasattr(layer, "model") else None
+    return {"layers": layers, "sim": sim}
+
+
+def load_env_state(env: gym.Env, state: dict) -> None:
+    layer = env
+    for attrs in state["layers"]:
+        for key, value in attrs.items():
+            setattr(layer, key, copy.deepcopy(value))
+        if not isinstance(layer, gym.Wrapper):
+            break
+        layer = layer.env
+    if state["sim"] is not None:
+        layer.data = pickle.loads(state["sim"])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -359,11 +412,12 @@ class Evaluator:
     @torch.inference_mode()
     def __call__(
         self,
-        actor: CascadeActor,
+        policy: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
         stats: tuple[np.ndarray, np.ndarray] | None,
         deterministic: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Returns each episode's undiscounted raw return and the std of each fallback within it [episodes, n-1]."""
+        """Runs `policy` (obs -> mean, log-std, fallbacks [m, B]); returns each episode's undiscounted
+        raw return and the std of each fallback within each episode [episodes, m]."""
         episodes = len(self.envs)
         base_seed = self.seed + 100_003 * (self.calls + 1)
         self.calls += 1
@@ -374,7 +428,7 @@ class Evaluator:
         active = list(range(episodes))
         while active:
             x = torch.as_tensor(normalize_obs(obs[active], stats))
-            mean, log_std, fallback, _ = actor(x)
+            mean, log_std, fallback = policy(x)
             action = mean if deterministic else mean + torch.exp(log_std) * torch.randn(
                 mean.shape, generator=self.generator
             )
@@ -394,6 +448,122 @@ class Evaluator:
     def close(self) -> None:
         for env in self.envs:
             env.close()
+
+
+def full_policy(actor: CascadeActor) -> Callable:
+    return lambda x: actor(x)[:3]
+
+
+def member_policy(actor: CascadeActor, net: int) -> Callable:
+    """Base net `net` (0-based) acting alone with its own mean and log-std; it has no fallbacks."""
+    return lambda x: (*actor.member(x, net), x.new_zeros(0, x.shape[0]))
+
+
+def record_video(actor: CascadeActor, stats, env_id: str, path: str, deterministic: bool, seed: int) -> float:
+    """Write an mp4 of one episode; returns its return. Needs an OpenGL backend for MuJoCo."""
+    try:
+        env = gym.make(env_id, render_mode="rgb_array")
+        obs, _ = env.reset(seed=seed)
+        frames = [env.render()]
+    except Exception as exc:  # no GL context: say so instead of a long traceback
+        fail(f"cannot render {env_id} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
+             "set MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa (CPU, needs libosmesa) and retry")
+    try:
+        import imageio.v2 as imageio
+
+        writer = imageio.get_writer(path, fps=env.metadata.get("render_fps", 30))
+    except Exception as exc:
+        fail(f"cannot write {path} ({exc}); install imageio-ffmpeg (pip install imageio-ffmpeg)")
+    generator = torch.Generator().manual_seed(seed)
+    total, done = 0.0, False
+    with torch.inference_mode():
+        while not done:
+            mean, log_std, _, _ = actor(torch.as_tensor(normalize_obs(obs[None], stats)))
+            if not deterministic:
+                mean = mean + torch.exp(log_std) * torch.randn(mean.shape, generator=generator)
+            action = np.clip(mean[0].numpy(), env.action_space.low, env.action_space.high)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            total += float(reward)
+            done = terminated or truncated
+            frames.append(env.render())
+    for frame in frames:
+        writer.append_data(frame)
+    writer.close()
+    env.close()
+    return total
+
+
+# ----------------------------------------------------------------------------------------------
+# Checkpoints: one file with everything needed to continue and to act
+# ----------------------------------------------------------------------------------------------
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+def save_checkpoint(path: str, payload: dict) -> None:
+    """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then)."""
+    tmp = f"{path}.tmp"
+    with open(tmp, "wb") as f:
+        torch.save(payload, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str) -> dict:
+    """Load `runs/<run>` (its latest checkpoint) or a checkpoint file; one-line error if missing or corrupt."""
+    if os.path.isdir(path):
+        path = os.path.join(path, CHECKPOINT_NAME)
+    if not os.path.isfile(path):
+        fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file")
+    try:
+        # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "cascade_ppo_continuous/1":
+        fail(f"{path} is not a cascade_ppo_continuous checkpoint")
+    checkpoint["path"] = path
+    return checkpoint
+
+
+def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") -> CascadeActor:
+    saved = Args(**checkpoint["args"])
+    rng = torch.get_rng_state()  # building the nets draws random inits; keep the caller's RNG untouched
+    actor = CascadeActor(checkpoint["obs_dim"], checkpoint["act_dim"], saved.hidden_size, saved.num_layers,
+                         saved.fallback_init)
+    for _ in range(checkpoint["actor_size"]):
+        actor.add_base_net()
+    torch.set_rng_state(rng)
+    actor.load_state_dict(checkpoint["actor"])
+    actor.freeze_below(checkpoint["num_frozen"])
+    return actor.to(device)
+
+
+class Progress:
+    """One self-updating line on a terminal; plain lines every `interval` seconds otherwise."""
+
+    def __init__(self, total_steps: int, quiet: bool, interval: float = 30.0):
+        self.total, self.quiet, self.interval = total_steps, quiet, interval
+        self.tty = sys.stdout.isatty()
+        self.last_print = 0.0
+        self.last_eval: float | None = None
+
+    def update(self, step: int, sps: float, size: int, force: bool = False) -> None:
+        now = time.time()
+        if self.quiet or (not force and now - self.last_print < (0.5 if self.tty else self.interval)):
+            return
+        self.last_print = now
+        eta = (self.total - step) / max(sps, 1e-9)
+        ev = "-" if self.last_eval is None else f"{self.last_eval:.1f}"
+        line = (f"{step:>10,}/{self.total:,} steps ({100 * step / self.total:5.1f}%) | {sps:6.0f} SPS | "
+                f"{size} net(s) | eval {ev} | ETA {time.strftime('%H:%M:%S', time.gmtime(eta))}")
+        print(f"\r{line}" if self.tty else line, end="" if self.tty else "\n", flush=True)
+
+    def message(self, text: str) -> None:
+        """A normal line that does not garble the progress line."""
+        if self.quiet:
+            return
+        print(f"\r\033[K{text}" if self.tty else text, flush=True)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -434,9 +604,20 @@ def seed_everything(seed: int, torch_deterministic: bool) -> None:
     torch.backends.cudnn.deterministic = torch_deterministic
 
 
-def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) -> dict:
-    """Runs Cascade; returns the final actor, critic and run folder. `on_iteration_start` sees the
-    fresh state of each iteration (used by the tests)."""
+def rng_states() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def set_rng_states(states: dict) -> None:
+    torch.set_rng_state(states["torch"])
+    np.random.set_state(states["numpy"])
+    random.setstate(states["python"])
+
+
+def train(args: Args, checkpoint: dict | None = None,
+          on_iteration_start: Callable[[dict], None] | None = None) -> dict:
+    """Runs Cascade (from scratch, or continuing `checkpoint`); returns the final actor, critic, run folder.
+    `on_iteration_start` sees the fresh state of each iteration (used by the tests)."""
     validate(args)
     torch.set_num_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
@@ -450,33 +631,48 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
     minibatch_size = batch_size // args.num_minibatches
     updates_per_iteration = args.k // batch_size
     total_updates = args.n * updates_per_iteration
-    if args.k % batch_size:
+    if args.k % batch_size and checkpoint is None:
         print(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
               f"{updates_per_iteration} updates = {updates_per_iteration * batch_size} steps")
 
     from torch.utils.tensorboard import SummaryWriter
 
-    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    run_dir = os.path.join(args.track_dir, run_name)
-    writer = SummaryWriter(run_dir)
-    writer.add_text(
-        "hyperparameters",
-        "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
-    )
+    if checkpoint is None:
+        run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+        run_dir = os.path.join(args.track_dir, run_name)
+        writer = SummaryWriter(run_dir)
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
+        )
+    else:
+        run_dir = os.path.dirname(checkpoint["path"])
+        # purge_step hides whatever the killed run logged after its last checkpoint
+        writer = SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1)
+    checkpoint_path = os.path.join(run_dir, CHECKPOINT_NAME)
 
     actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init).to(device)
     if args.start_full:
         for _ in range(args.n):
             actor.add_base_net()
     evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed) if args.eval_every else None
+    progress = Progress(args.n * updates_per_iteration * batch_size, args.quiet)
 
     def evaluate_and_log(step: int) -> None:
-        returns, fallback_std = evaluator(actor, obs_statistics(envs))
+        returns, fallback_std = evaluator(full_policy(actor), obs_statistics(envs))
         writer.add_scalar("eval/episodic_return", returns.mean(), step)
         writer.add_scalar("eval/episodic_return_std", returns.std(), step)
         for j, std in enumerate(fallback_std.mean(0)):
             writer.add_scalar(f"cascade/fallback_std/net_{j + 2}", std, step)
-        print(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+        progress.last_eval = float(returns.mean())
+        progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+
+    def evaluate_members(step: int) -> None:
+        stats = obs_statistics(envs)
+        for net in range(actor.size):
+            returns, _ = evaluator(member_policy(actor, net), stats)
+            writer.add_scalar(f"members/return/net_{net + 1}", returns.mean(), step)
+            progress.message(f"global_step={step}, members/return/net_{net + 1}={returns.mean():.1f}")
 
     # Rollout storage, preallocated once
     obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
@@ -488,37 +684,78 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
     step_fallbacks = torch.zeros((args.num_steps, args.num_envs, args.n - 1), device=device)
     step_contributions = torch.zeros((args.num_steps, args.num_envs, args.n), device=device)
 
-    global_step = 0
-    start_time = time.time()
-    next_obs_np, _ = envs.reset(seed=args.seed)
-    envs.action_space.seed(args.seed)
-    next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
-    next_done = torch.zeros(args.num_envs, device=device)
-    if evaluator is not None:
-        evaluate_and_log(0)
+    critic: nn.Module | None = None
+    optimizer: torch.optim.Optimizer | None = None
 
-    critic = None
-    for iteration in range(1, args.n + 1):
-        # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
-        if not args.start_full:
-            actor.add_base_net()
-        if args.freeze_previous:
-            actor.freeze_below(actor.size - 1)
-        critic = make_critic(obs_dim).to(device)
-        optimizer = torch.optim.Adam(
-            [*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5
-        )
+    def make_checkpoint(iteration: int, updates_done: int) -> dict:
+        return {
+            "format": "cascade_ppo_continuous/1", "args": asdict(args), "obs_dim": obs_dim, "act_dim": act_dim,
+            "iteration": iteration, "updates_done": updates_done, "global_step": global_step,
+            "elapsed": time.time() - start_time,
+            "actor": actor.state_dict(), "actor_size": actor.size, "num_frozen": actor.num_frozen,
+            "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
+            "obs_stats": obs_statistics(envs), "env_states": [env_state(e) for e in envs.envs],
+            "next_obs": next_obs.cpu(), "next_done": next_done.cpu(), "rng": rng_states(),
+            "evaluator": None if evaluator is None else (evaluator.generator.get_state(), evaluator.calls),
+        }
+
+    if checkpoint is None:
+        global_step, start_iteration, start_update = 0, 1, 1
+        start_time = time.time()
+        next_obs_np, _ = envs.reset(seed=args.seed)
+        next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+        next_done = torch.zeros(args.num_envs, device=device)
+        if evaluator is not None:
+            evaluate_and_log(0)
+    else:
+        global_step = checkpoint["global_step"]
+        start_time = time.time() - checkpoint["elapsed"]
+        envs.reset(seed=args.seed)  # sets up the vector env; then every env gets its saved state back
+        for env, state in zip(envs.envs, checkpoint["env_states"]):
+            load_env_state(env, state)
+        next_obs = checkpoint["next_obs"].to(device)
+        next_done = checkpoint["next_done"].to(device)
+        actor = actor_from_checkpoint(checkpoint, device)
+        start_iteration, start_update = checkpoint["iteration"], checkpoint["updates_done"] + 1
+        if start_update > updates_per_iteration:  # saved at the end of an iteration
+            start_iteration, start_update = start_iteration + 1, 1
+        if evaluator is not None:
+            evaluator.generator.set_state(checkpoint["evaluator"][0])
+            evaluator.calls = checkpoint["evaluator"][1]
+        set_rng_states(checkpoint["rng"])
+        progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
+    last_checkpoint_step = global_step
+
+    for iteration in range(start_iteration, args.n + 1):
+        resuming_mid_iteration = checkpoint is not None and iteration == start_iteration and start_update > 1
+        if resuming_mid_iteration:
+            rng = torch.get_rng_state()  # the critic's init draws must not shift the restored RNG stream
+            critic = make_critic(obs_dim).to(device)
+            torch.set_rng_state(rng)
+            critic.load_state_dict(checkpoint["critic"])
+            optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5)
+            optimizer.load_state_dict(checkpoint["optimizer"])
+        else:
+            # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
+            if not args.start_full:
+                actor.add_base_net()
+            if args.freeze_previous:
+                actor.freeze_below(actor.size - 1)
+            critic = make_critic(obs_dim).to(device)
+            optimizer = torch.optim.Adam(
+                [*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5
+            )
         size = actor.size
         n_params = count_parameters(actor, critic)
         writer.add_scalar("cascade/size", size, global_step)
         writer.add_scalar("cascade/parameters", n_params, global_step)
-        print(f"iteration {iteration}/{args.n}: {size} base net(s), {n_params} parameters (actor + critic)")
+        progress.message(f"iteration {iteration}/{args.n}: {size} base net(s), {n_params} parameters (actor + critic)")
         if on_iteration_start is not None:
             on_iteration_start(
                 {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}
             )
 
-        for update in range(1, updates_per_iteration + 1):
+        for update in range(start_update if iteration == start_iteration else 1, updates_per_iteration + 1):
             if args.lr_schedule == "cyclic":
                 frac = 1.0 - (update - 1.0) / updates_per_iteration
             elif args.lr_schedule == "global":
@@ -642,11 +879,29 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
             for j, w in enumerate(mean_weight.tolist()):
                 writer.add_scalar(f"cascade/contribution/net_{j + 1}", w, global_step)
             writer.add_scalar("cascade/fallback_product", mean_weight[0].item(), global_step)
-            sps = int(global_step / (time.time() - start_time))
-            writer.add_scalar("charts/SPS", sps, global_step)
+            sps = global_step / (time.time() - start_time)
+            writer.add_scalar("charts/SPS", int(sps), global_step)
             writer.add_scalar("cascade/size", size, global_step)
+            progress.update(global_step, sps, size)
 
-        print(f"iteration {iteration} done: global_step={global_step}, SPS={int(global_step / (time.time() - start_time))}")
+            # --- non-finite guard: stop before anything bad is written to the checkpoint ---
+            if not math.isfinite(loss.item()) or not all(torch.isfinite(p).all() for p in optimizer.param_groups[0]["params"]):
+                writer.close()
+                fail(f"non-finite loss or parameters at global_step={global_step} (iteration {iteration}, update "
+                     f"{update}); the last good checkpoint {checkpoint_path} is intact")
+
+            if update == updates_per_iteration:
+                if evaluator is not None and args.eval_members:
+                    evaluate_members(global_step)
+                save_checkpoint(checkpoint_path, make_checkpoint(iteration, update))
+                shutil.copyfile(checkpoint_path, os.path.join(run_dir, f"iteration_{iteration}.pt"))
+                last_checkpoint_step = global_step
+            elif args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every:
+                save_checkpoint(checkpoint_path, make_checkpoint(iteration, update))
+                last_checkpoint_step = global_step
+
+        progress.message(f"iteration {iteration} done: global_step={global_step}, "
+                         f"SPS={int(global_step / (time.time() - start_time))}")
 
     if evaluator is not None and global_step % args.eval_every >= args.num_envs:
         evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
@@ -654,12 +909,80 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
         evaluator.close()
     envs.close()
     writer.close()
-    return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step}
+    return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step,
+            "obs_stats": obs_statistics(envs)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Command line: train, resume, or evaluate a saved model
+# ----------------------------------------------------------------------------------------------
+# Settings a resumed run may change; every other flag must match the checkpoint.
+RESUME_OVERRIDABLE = {"resume", "quiet", "checkpoint_every", "torch_threads", "cuda"}
+
+
+def explicit_fields(argv: list[str]) -> set[str]:
+    """Names of the Args fields given on the command line (`--env-id X`, `--no-normalize`, ...)."""
+    names = {f for f in Args.__dataclass_fields__}
+    given = set()
+    for token in argv:
+        if not token.startswith("--"):
+            continue
+        name = token[2:].split("=")[0].replace("-", "_")
+        if name not in names and name.startswith("no_") and name[3:] in names:
+            name = name[3:]
+        if name in names:
+            given.add(name)
+    return given
+
+
+def resumed_args(args: Args, checkpoint: dict, given: set[str]) -> Args:
+    """The checkpoint's settings; a conflicting flag on the command line is an error."""
+    saved = Args(**checkpoint["args"])
+    for name in sorted(given - RESUME_OVERRIDABLE):
+        if getattr(args, name) != getattr(saved, name):
+            fail(f"--{name.replace('_', '-')} {getattr(args, name)} differs from the checkpoint's "
+                 f"{getattr(saved, name)}; a resumed run keeps its settings (drop the flag)")
+    for name in given & RESUME_OVERRIDABLE:
+        setattr(saved, name, getattr(args, name))
+    return saved
+
+
+def evaluate_saved(args: Args) -> dict:
+    """--evaluate: the saved policy with its saved observation statistics frozen."""
+    checkpoint = load_checkpoint(args.evaluate)
+    saved = Args(**checkpoint["args"])
+    torch.set_num_threads(args.torch_threads)
+    actor = actor_from_checkpoint(checkpoint)
+    stats = checkpoint["obs_stats"]
+    evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed)
+    returns, _ = evaluator(full_policy(actor), stats, args.deterministic)
+    mode = "deterministic" if args.deterministic else "stochastic"
+    print(f"{saved.env_id}, {actor.size} base net(s), step {checkpoint['global_step']}: "
+          f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
+    result = {"returns": returns, "members": []}
+    if args.members:
+        for net in range(actor.size):
+            member_returns, _ = evaluator(member_policy(actor, net), stats, args.deterministic)
+            result["members"].append(member_returns)
+            print(f"  net {net + 1} alone: {member_returns.mean():.1f} ± {member_returns.std():.1f}")
+    evaluator.close()
+    if args.capture_video:
+        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
+        video_return = record_video(actor, stats, saved.env_id, path, args.deterministic, args.seed)
+        print(f"video of one episode (return {video_return:.1f}): {path}")
+    return result
 
 
 def main() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
-    train(args)
+    if args.evaluate:
+        evaluate_saved(args)
+        return
+    checkpoint = None
+    if args.resume:
+        checkpoint = load_checkpoint(args.resume)
+        args = resumed_args(args, checkpoint, explicit_fields(sys.argv[1:]))
+    train(args, checkpoint)
 
 
 if __name__ == "__main__":

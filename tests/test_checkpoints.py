@@ -1,0 +1,188 @@
+"""Long runs you can trust: atomic checkpoints, exact resume, saved-model evaluation, member returns, NaN guard."""
+
+import hashlib
+import os
+import shutil
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import cascade_ppo_continuous as cpc
+from helpers import read_scalars, run_script
+
+BASE = dict(env_id="Hopper-v4", n=2, k=1024, num_steps=256, num_minibatches=4, update_epochs=2,
+            eval_every=512, eval_episodes=2, quiet=True)
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    """One short real 2-net run with mid-iteration checkpoints."""
+    track = tmp_path_factory.mktemp("runs")
+    result = cpc.train(cpc.Args(track_dir=str(track), checkpoint_every=512, **BASE))
+    return result
+
+
+def digest(folder):
+    return {name: hashlib.sha256(open(os.path.join(folder, name), "rb").read()).hexdigest()
+            for name in sorted(os.listdir(folder))}
+
+
+def test_checkpoints_are_written_at_iteration_ends(finished_run):
+    files = os.listdir(finished_run["run_dir"])
+    assert {"checkpoint.pt", "iteration_1.pt", "iteration_2.pt"} <= set(files)
+    first = cpc.load_checkpoint(os.path.join(finished_run["run_dir"], "iteration_1.pt"))
+    assert (first["iteration"], first["updates_done"], first["global_step"], first["actor_size"]) == (1, 4, 1024, 1)
+    last = cpc.load_checkpoint(finished_run["run_dir"])
+    assert last["global_step"] == 2048 and last["actor_size"] == 2
+    assert set(last["optimizer"]["state"])  # optimizer moments are saved
+    assert last["obs_stats"] is not None and last["env_states"][0]["sim"] is not None
+
+
+def test_crash_mid_write_leaves_previous_checkpoint_loadable(tmp_path, monkeypatch):
+    path = str(tmp_path / "checkpoint.pt")
+    cpc.save_checkpoint(path, {"format": "cascade_ppo_continuous/1", "global_step": 1, "args": {}})
+
+    def crash(obj, f):  # the process dies half way through writing the new file
+        f.write(b"\x80\x02partial")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", crash)
+    with pytest.raises(KeyboardInterrupt):
+        cpc.save_checkpoint(path, {"format": "cascade_ppo_continuous/1", "global_step": 2, "args": {}})
+    monkeypatch.undo()
+    assert cpc.load_checkpoint(path)["global_step"] == 1
+
+
+def resume_from(checkpoint_file, folder):
+    os.makedirs(folder)
+    shutil.copy(checkpoint_file, os.path.join(folder, "checkpoint.pt"))
+    checkpoint = cpc.load_checkpoint(str(folder))
+    return cpc.train(cpc.Args(**checkpoint["args"]), checkpoint)
+
+
+def test_resume_at_iteration_boundary_gives_identical_parameters(finished_run, tmp_path):
+    resumed = resume_from(os.path.join(finished_run["run_dir"], "iteration_1.pt"), tmp_path / "resumed")
+    original, again = finished_run["actor"].state_dict(), resumed["actor"].state_dict()
+    assert original.keys() == again.keys()
+    for key in original:
+        torch.testing.assert_close(again[key], original[key], rtol=0, atol=0)
+    for a, b in zip(finished_run["critic"].parameters(), resumed["critic"].parameters()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # the resumed run logged the second iteration into its own (copied) run folder
+    scalars = read_scalars(resumed["run_dir"])
+    assert [s for s, _ in scalars["eval/episodic_return"]] == [1536, 2048]
+
+
+def test_resume_mid_iteration_gives_identical_parameters(tmp_path):
+    # keep a copy of the checkpoint written after update 2 of 4 of iteration 2, resume from it
+    args = cpc.Args(track_dir=str(tmp_path / "a"), checkpoint_every=256, **BASE)
+    snapshots = []
+    real_save = cpc.save_checkpoint
+
+    def keep_copy(path, payload):
+        real_save(path, payload)
+        if payload["iteration"] == 2 and payload["updates_done"] == 2:
+            shutil.copy(path, tmp_path / "mid.pt")
+            snapshots.append(payload["global_step"])
+
+    cpc.save_checkpoint = keep_copy
+    try:
+        full = cpc.train(args)
+    finally:
+        cpc.save_checkpoint = real_save
+    assert snapshots == [1536]
+    resumed = resume_from(tmp_path / "mid.pt", tmp_path / "b")
+    for a, b in zip(full["actor"].parameters(), resumed["actor"].parameters()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_saved_model_acts_like_the_live_policy(finished_run):
+    checkpoint = cpc.load_checkpoint(finished_run["run_dir"])
+    saved_actor = cpc.actor_from_checkpoint(checkpoint)
+    raw = np.random.default_rng(3).normal(size=(5, 11)) * 3  # raw Hopper observations
+    # live: the training wrapper's own normalization with the live statistics, then the live actor
+    env = cpc.make_env("Hopper-v4", 0.99, True)()
+    norm = cpc.find_wrapper(env, gym.wrappers.NormalizeObservation)
+    norm.obs_rms.mean, norm.obs_rms.var = finished_run["obs_stats"]
+    norm.update_running_mean = False
+    live_obs = np.clip(np.stack([norm.observation(o) for o in raw]), -10, 10).astype(np.float32)
+    with torch.no_grad():
+        live = finished_run["actor"](torch.as_tensor(live_obs))
+        saved = saved_actor(torch.as_tensor(cpc.normalize_obs(raw, checkpoint["obs_stats"])))
+    for a, b in zip(live, saved):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_member_evaluation_is_the_net_alone(finished_run):
+    actor = cpc.actor_from_checkpoint(cpc.load_checkpoint(finished_run["run_dir"]))
+    stats = finished_run["obs_stats"]
+    with torch.no_grad():  # make the top net defer fully: the stack then acts exactly as net 1 alone
+        actor.fallback_bias[:] = 100.0
+        actor.fallback_weight[:] = 0.0
+    full, _ = cpc.Evaluator("Hopper-v4", 3, seed=5)(cpc.full_policy(actor), stats)
+    alone, fallback_std = cpc.Evaluator("Hopper-v4", 3, seed=5)(cpc.member_policy(actor, 0), stats)
+    other, _ = cpc.Evaluator("Hopper-v4", 3, seed=5)(cpc.member_policy(actor, 1), stats)
+    np.testing.assert_allclose(full, alone, rtol=1e-6)
+    assert fallback_std.shape == (3, 0)
+    assert not np.allclose(alone, other)
+    tags = read_scalars(finished_run["run_dir"])
+    assert {"members/return/net_1", "members/return/net_2"} <= set(tags)
+    assert [s for s, _ in tags["members/return/net_1"]] == [1024, 2048]
+    assert [s for s, _ in tags["members/return/net_2"]] == [2048]
+
+
+def test_evaluate_cli_with_members(finished_run):
+    proc = run_script("cascade_ppo_continuous.py", "--evaluate", finished_run["run_dir"], "--eval-episodes", "2",
+                      "--members", "--deterministic")
+    assert proc.returncode == 0, proc.stderr
+    assert "over 2 deterministic episodes" in proc.stdout
+    assert "net 1 alone" in proc.stdout and "net 2 alone" in proc.stdout
+
+
+def test_nan_guard_stops_and_keeps_last_good_checkpoint(tmp_path):
+    def poison(state):
+        if state["iteration"] == 2:
+            with torch.no_grad():
+                state["critic"][0].weight[0, 0] = float("nan")
+
+    args = cpc.Args(track_dir=str(tmp_path), checkpoint_every=0, **BASE)
+    with pytest.raises(SystemExit) as stop:
+        cpc.train(args, on_iteration_start=poison)
+    message = str(stop.value)
+    assert "non-finite" in message and "iteration 2" in message and "global_step=1280" in message
+    run_dir = os.path.join(tmp_path, os.listdir(tmp_path)[0])
+    checkpoint = cpc.load_checkpoint(run_dir)
+    assert checkpoint["global_step"] == 1024
+    assert all(torch.isfinite(v).all() for v in checkpoint["critic"].values())
+
+
+def test_resume_bad_input(finished_run, tmp_path):
+    run_dir = finished_run["run_dir"]
+    before = digest(run_dir)
+    cases = [
+        (["--resume", str(tmp_path / "nope")], "no checkpoint at"),
+        (["--resume", run_dir, "--env-id", "Walker2d-v4"], "--env-id Walker2d-v4 differs"),
+        (["--resume", run_dir, "--n", "3"], "--n 3 differs"),
+        (["--evaluate", str(tmp_path / "nope.pt")], "no checkpoint at"),
+    ]
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"not a checkpoint at all")
+    cases.append((["--resume", str(corrupt)], "cannot read checkpoint"))
+    for extra, message in cases:
+        proc = run_script("cascade_ppo_continuous.py", *extra)
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert proc.returncode != 0
+        assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], (extra, proc.stderr)
+    assert digest(run_dir) == before
+
+
+def test_progress_lines_when_not_a_terminal(tmp_path):
+    common = ["--env-id", "Hopper-v4", "--n", "1", "--k", "512", "--num-steps", "256", "--num-minibatches", "4",
+              "--update-epochs", "1", "--eval-every", "0", "--track-dir", tmp_path]
+    loud = run_script("cascade_ppo_continuous.py", *common)
+    quiet = run_script("cascade_ppo_continuous.py", *common, "--quiet")
+    assert loud.returncode == quiet.returncode == 0
+    assert "SPS" in loud.stdout and "ETA" in loud.stdout and "\r" not in loud.stdout
+    assert "ETA" not in quiet.stdout
