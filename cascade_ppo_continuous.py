@@ -459,21 +459,27 @@ def member_policy(actor: CascadeActor, net: int) -> Callable:
     return lambda x: (*actor.member(x, net), x.new_zeros(0, x.shape[0]))
 
 
-def record_video(actor: CascadeActor, stats, env_id: str, path: str, deterministic: bool, seed: int) -> float:
-    """Write an mp4 of one episode; returns its return. Needs an OpenGL backend for MuJoCo."""
+def make_render_env(env_id: str) -> gym.Env:
+    """An env that renders rgb arrays, or a one-line error naming the GL backends to try."""
     try:
         env = gym.make(env_id, render_mode="rgb_array")
-        obs, _ = env.reset(seed=seed)
-        frames = [env.render()]
-    except Exception as exc:  # no GL context: say so instead of a long traceback
-        fail(f"cannot render {env_id} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
-             "set MUJOCO_GL=egl (GPU) or MUJOCO_GL=osmesa (CPU, needs libosmesa) and retry")
-    try:
-        import imageio.v2 as imageio
+        env.reset(seed=0)
+        env.render()
+        return env
+    except Exception as exc:  # no usable OpenGL backend: say so instead of a long traceback
+        first_line = (str(exc).splitlines() or [""])[0][:160]
+        fail(f"cannot render {env_id} with MUJOCO_GL={os.environ.get('MUJOCO_GL', '(unset)')} "
+             f"({type(exc).__name__}: {first_line}); try MUJOCO_GL=egl, or MUJOCO_GL=osmesa with libosmesa installed")
 
-        writer = imageio.get_writer(path, fps=env.metadata.get("render_fps", 30))
-    except Exception as exc:
-        fail(f"cannot write {path} ({exc}); install imageio-ffmpeg (pip install imageio-ffmpeg)")
+
+def record_video(actor: CascadeActor, stats, env_id: str, path: str, deterministic: bool, seed: int) -> float:
+    """Write an mp4 of one episode; returns its return. Needs an OpenGL backend for MuJoCo."""
+    env = make_render_env(env_id)
+    obs, _ = env.reset(seed=seed)
+    frames = [env.render()]
+    import imageio.v2 as imageio  # with imageio-ffmpeg (requirements.txt) for mp4
+
+    writer = imageio.get_writer(path, fps=env.metadata.get("render_fps", 30))
     generator = torch.Generator().manual_seed(seed)
     total, done = 0.0, False
     with torch.inference_mode():
@@ -951,6 +957,8 @@ def evaluate_saved(args: Args) -> dict:
     """--evaluate: the saved policy with its saved observation statistics frozen."""
     checkpoint = load_checkpoint(args.evaluate)
     saved = Args(**checkpoint["args"])
+    if args.capture_video:
+        make_render_env(saved.env_id).close()  # fail early, before any episode is run
     torch.set_num_threads(args.torch_threads)
     actor = actor_from_checkpoint(checkpoint)
     stats = checkpoint["obs_stats"]

@@ -10,9 +10,13 @@ gymnasium 1.x, with the paper's extra baseline flags: `--hidden-size`, `--lr-sch
 
 from __future__ import annotations
 
+import collections
+import copy
 import math
 import os
+import pickle
 import random
+import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -24,6 +28,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 import tyro
+from gymnasium.wrappers.utils import RunningMeanStd
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -95,6 +100,20 @@ class Args:
     """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
     eval_episodes: int = 10
     """episodes per evaluation (stochastic policy, frozen observation statistics)"""
+
+    # Checkpoints, resuming, evaluating a saved model
+    checkpoint_every: int = 100_000
+    """checkpoint every this many env steps, and at the end of the run (0: at the end only)"""
+    resume: str | None = None
+    """continue a killed run: `runs/<run_name>` or a checkpoint file; the saved settings are used"""
+    evaluate: str | None = None
+    """evaluate a saved model (`runs/<run_name>` or a checkpoint file) for --eval-episodes episodes and exit"""
+    deterministic: bool = False
+    """with --evaluate: act with the mean action instead of sampling"""
+    capture_video: bool = False
+    """with --evaluate: write an mp4 of one episode next to the checkpoint (needs MUJOCO_GL=egl or osmesa)"""
+    quiet: bool = False
+    """no progress display"""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -169,6 +188,35 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) 
         return obs.astype(np.float32)
     mean, var = stats
     return np.clip((obs - mean) / np.sqrt(var + NORM_EPS), -OBS_CLIP, OBS_CLIP).astype(np.float32)
+
+
+# Plain-data attributes of an env and its wrappers: step counters, episode statistics, running
+# normalization statistics, the env's RNG. Saved and restored so a resumed run continues the very
+# same trajectories (MuJoCo's simulation state, MjData, is saved whole).
+ENV_STATE_TYPES = (bool, int, float, np.ndarray, np.generic, np.random.Generator, RunningMeanStd, collections.deque)
+
+
+def env_state(env: gym.Env) -> dict:
+    layers, layer = [], env
+    while True:
+        layers.append({k: copy.deepcopy(v) for k, v in vars(layer).items() if isinstance(v, ENV_STATE_TYPES)})
+        if not isinstance(layer, gym.Wrapper):
+            break
+        layer = layer.env
+    sim = pickle.dumps(layer.data) if hasattr(layer, "data") and hasattr(layer, "model") else None
+    return {"layers": layers, "sim": sim}
+
+
+def load_env_state(env: gym.Env, state: dict) -> None:
+    layer = env
+    for attrs in state["layers"]:
+        for key, value in attrs.items():
+            setattr(layer, key, copy.deepcopy(value))
+        if not isinstance(layer, gym.Wrapper):
+            break
+        layer = layer.env
+    if state["sim"] is not None:
+        layer.data = pickle.loads(state["sim"])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -272,6 +320,115 @@ class Evaluator:
             env.close()
 
 
+def make_render_env(env_id: str) -> gym.Env:
+    """An env that renders rgb arrays, or a one-line error naming the GL backends to try."""
+    try:
+        env = gym.make(env_id, render_mode="rgb_array")
+        env.reset(seed=0)
+        env.render()
+        return env
+    except Exception as exc:  # no usable OpenGL backend: say so instead of a long traceback
+        first_line = (str(exc).splitlines() or [""])[0][:160]
+        fail(f"cannot render {env_id} with MUJOCO_GL={os.environ.get('MUJOCO_GL', '(unset)')} "
+             f"({type(exc).__name__}: {first_line}); try MUJOCO_GL=egl, or MUJOCO_GL=osmesa with libosmesa installed")
+
+
+def record_video(actor: Actor, stats, env_id: str, path: str, deterministic: bool, seed: int) -> float:
+    """Write an mp4 of one episode; returns its return. Needs an OpenGL backend for MuJoCo."""
+    env = make_render_env(env_id)
+    obs, _ = env.reset(seed=seed)
+    frames = [env.render()]
+    import imageio.v2 as imageio  # with imageio-ffmpeg (requirements.txt) for mp4
+
+    writer = imageio.get_writer(path, fps=env.metadata.get("render_fps", 30))
+    generator = torch.Generator().manual_seed(seed)
+    total, done = 0.0, False
+    with torch.inference_mode():
+        while not done:
+            mean, log_std = actor(torch.as_tensor(normalize_obs(obs[None], stats)))
+            if not deterministic:
+                mean = mean + torch.exp(log_std) * torch.randn(mean.shape, generator=generator)
+            action = np.clip(mean[0].numpy(), env.action_space.low, env.action_space.high)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            total += float(reward)
+            done = terminated or truncated
+            frames.append(env.render())
+    for frame in frames:
+        writer.append_data(frame)
+    writer.close()
+    env.close()
+    return total
+
+
+# ----------------------------------------------------------------------------------------------
+# Checkpoints: one file with everything needed to continue and to act
+# ----------------------------------------------------------------------------------------------
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+def save_checkpoint(path: str, payload: dict) -> None:
+    """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then)."""
+    tmp = f"{path}.tmp"
+    with open(tmp, "wb") as f:
+        torch.save(payload, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str) -> dict:
+    """Load `runs/<run>` (its latest checkpoint) or a checkpoint file; one-line error if missing or corrupt."""
+    if os.path.isdir(path):
+        path = os.path.join(path, CHECKPOINT_NAME)
+    if not os.path.isfile(path):
+        fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file")
+    try:
+        # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "ppo_baseline/1":
+        fail(f"{path} is not a ppo_baseline checkpoint")
+    checkpoint["path"] = path
+    return checkpoint
+
+
+def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") -> Actor:
+    saved = Args(**checkpoint["args"])
+    rng = torch.get_rng_state()  # building the net draws random inits; keep the caller's RNG untouched
+    actor = Actor(checkpoint["obs_dim"], checkpoint["act_dim"], saved.hidden_size)
+    torch.set_rng_state(rng)
+    actor.load_state_dict(checkpoint["actor"])
+    return actor.to(device)
+
+
+class Progress:
+    """One self-updating line on a terminal; plain lines every `interval` seconds otherwise."""
+
+    def __init__(self, total_steps: int, quiet: bool, interval: float = 30.0):
+        self.total, self.quiet, self.interval = total_steps, quiet, interval
+        self.tty = sys.stdout.isatty()
+        self.last_print = 0.0
+        self.last_eval: float | None = None
+
+    def update(self, step: int, sps: float, force: bool = False) -> None:
+        now = time.time()
+        if self.quiet or (not force and now - self.last_print < (0.5 if self.tty else self.interval)):
+            return
+        self.last_print = now
+        eta = (self.total - step) / max(sps, 1e-9)
+        ev = "-" if self.last_eval is None else f"{self.last_eval:.1f}"
+        line = (f"{step:>10,}/{self.total:,} steps ({100 * step / self.total:5.1f}%) | {sps:6.0f} SPS | "
+                f"eval {ev} | ETA {time.strftime('%H:%M:%S', time.gmtime(eta))}")
+        print(f"\r{line}" if self.tty else line, end="" if self.tty else "\n", flush=True)
+
+    def message(self, text: str) -> None:
+        """A normal line that does not garble the progress line."""
+        if self.quiet:
+            return
+        print(f"\r\033[K{text}" if self.tty else text, flush=True)
+
+
 # ----------------------------------------------------------------------------------------------
 # Training
 # ----------------------------------------------------------------------------------------------
@@ -307,8 +464,18 @@ def seed_everything(seed: int, torch_deterministic: bool) -> None:
     torch.backends.cudnn.deterministic = torch_deterministic
 
 
-def train(args: Args) -> dict:
-    """Runs PPO; returns the final actor, critic and run folder."""
+def rng_states() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def set_rng_states(states: dict) -> None:
+    torch.set_rng_state(states["torch"])
+    np.random.set_state(states["numpy"])
+    random.setstate(states["python"])
+
+
+def train(args: Args, checkpoint: dict | None = None) -> dict:
+    """Runs PPO (from scratch, or continuing `checkpoint`); returns the final actor, critic and run folder."""
     validate(args)
     torch.set_num_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
@@ -322,32 +489,40 @@ def train(args: Args) -> dict:
     minibatch_size = batch_size // args.num_minibatches
     total_updates = args.total_timesteps // batch_size
     updates_per_cycle = max(args.cycle_steps // batch_size, 1)
-    if args.total_timesteps % batch_size:
+    if args.total_timesteps % batch_size and checkpoint is None:
         print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
               f"the run does {total_updates} updates = {total_updates * batch_size} steps")
 
     from torch.utils.tensorboard import SummaryWriter
 
-    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    run_dir = os.path.join(args.track_dir, run_name)
-    writer = SummaryWriter(run_dir)
-    writer.add_text(
-        "hyperparameters",
-        "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
-    )
+    if checkpoint is None:
+        run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+        run_dir = os.path.join(args.track_dir, run_name)
+        writer = SummaryWriter(run_dir)
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
+        )
+    else:
+        run_dir = os.path.dirname(checkpoint["path"])
+        # purge_step hides whatever the killed run logged after its last checkpoint
+        writer = SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1)
+    checkpoint_path = os.path.join(run_dir, CHECKPOINT_NAME)
 
     actor = Actor(obs_dim, act_dim, args.hidden_size).to(device)
     critic = make_critic(obs_dim).to(device)
     optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5)
     n_params = count_parameters(actor, critic)
-    print(f"PPO: {n_params} parameters (actor + critic)")
     evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed) if args.eval_every else None
+    progress = Progress(total_updates * batch_size, args.quiet)
+    progress.message(f"PPO: {n_params} parameters (actor + critic)")
 
     def evaluate_and_log(step: int) -> None:
         returns = evaluator(actor, obs_statistics(envs))
         writer.add_scalar("eval/episodic_return", returns.mean(), step)
         writer.add_scalar("eval/episodic_return_std", returns.std(), step)
-        print(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+        progress.last_eval = float(returns.mean())
+        progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
 
     # Rollout storage, preallocated once
     obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
@@ -357,17 +532,44 @@ def train(args: Args) -> dict:
     dones = torch.zeros((args.num_steps, args.num_envs), device=device)
     values = torch.zeros((args.num_steps, args.num_envs), device=device)
 
-    global_step = 0
-    start_time = time.time()
-    next_obs_np, _ = envs.reset(seed=args.seed)
-    envs.action_space.seed(args.seed)
-    next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
-    next_done = torch.zeros(args.num_envs, device=device)
-    if evaluator is not None:
-        evaluate_and_log(0)
-    writer.add_scalar("charts/parameters", n_params, global_step)
+    def make_checkpoint(updates_done: int) -> dict:
+        return {
+            "format": "ppo_baseline/1", "args": asdict(args), "obs_dim": obs_dim, "act_dim": act_dim,
+            "updates_done": updates_done, "global_step": global_step, "elapsed": time.time() - start_time,
+            "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
+            "obs_stats": obs_statistics(envs), "env_states": [env_state(e) for e in envs.envs],
+            "next_obs": next_obs.cpu(), "next_done": next_done.cpu(), "rng": rng_states(),
+            "evaluator": None if evaluator is None else (evaluator.generator.get_state(), evaluator.calls),
+        }
 
-    for update in range(1, total_updates + 1):
+    if checkpoint is None:
+        global_step, start_update = 0, 1
+        start_time = time.time()
+        next_obs_np, _ = envs.reset(seed=args.seed)
+        next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+        next_done = torch.zeros(args.num_envs, device=device)
+        if evaluator is not None:
+            evaluate_and_log(0)
+        writer.add_scalar("charts/parameters", n_params, global_step)
+    else:
+        global_step, start_update = checkpoint["global_step"], checkpoint["updates_done"] + 1
+        start_time = time.time() - checkpoint["elapsed"]
+        envs.reset(seed=args.seed)  # sets up the vector env; then every env gets its saved state back
+        for env, state in zip(envs.envs, checkpoint["env_states"]):
+            load_env_state(env, state)
+        next_obs = checkpoint["next_obs"].to(device)
+        next_done = checkpoint["next_done"].to(device)
+        actor.load_state_dict(checkpoint["actor"])
+        critic.load_state_dict(checkpoint["critic"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        if evaluator is not None:
+            evaluator.generator.set_state(checkpoint["evaluator"][0])
+            evaluator.calls = checkpoint["evaluator"][1]
+        set_rng_states(checkpoint["rng"])
+        progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
+    last_checkpoint_step = global_step
+
+    for update in range(start_update, total_updates + 1):
         if args.lr_schedule == "global":
             frac = 1.0 - (update - 1.0) / total_updates
         elif args.lr_schedule == "cyclic":
@@ -481,8 +683,18 @@ def train(args: Args) -> dict:
         writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
         writer.add_scalar("losses/clipfrac", np.mean(clipfracs), global_step)
         writer.add_scalar("losses/explained_variance", explained_var, global_step)
-        sps = int(global_step / (time.time() - start_time))
-        writer.add_scalar("charts/SPS", sps, global_step)
+        sps = global_step / (time.time() - start_time)
+        writer.add_scalar("charts/SPS", int(sps), global_step)
+        progress.update(global_step, sps)
+
+        # --- non-finite guard: stop before anything bad is written to the checkpoint ---
+        if not math.isfinite(loss.item()) or not all(torch.isfinite(p).all() for p in optimizer.param_groups[0]["params"]):
+            writer.close()
+            fail(f"non-finite loss or parameters at global_step={global_step} (update {update}); "
+                 f"the last good checkpoint {checkpoint_path} is intact")
+        if update == total_updates or (args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every):
+            save_checkpoint(checkpoint_path, make_checkpoint(update))
+            last_checkpoint_step = global_step
 
 
     if evaluator is not None and global_step % args.eval_every >= args.num_envs:
@@ -491,12 +703,77 @@ def train(args: Args) -> dict:
         evaluator.close()
     envs.close()
     writer.close()
-    return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step}
+    return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step,
+            "obs_stats": obs_statistics(envs)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Command line: train, resume, or evaluate a saved model
+# ----------------------------------------------------------------------------------------------
+# Settings a resumed run may change; every other flag must match the checkpoint.
+RESUME_OVERRIDABLE = {"resume", "quiet", "checkpoint_every", "torch_threads", "cuda"}
+
+
+def explicit_fields(argv: list[str]) -> set[str]:
+    """Names of the Args fields given on the command line (`--env-id X`, `--no-normalize`, ...)."""
+    names = {f for f in Args.__dataclass_fields__}
+    given = set()
+    for token in argv:
+        if not token.startswith("--"):
+            continue
+        name = token[2:].split("=")[0].replace("-", "_")
+        if name not in names and name.startswith("no_") and name[3:] in names:
+            name = name[3:]
+        if name in names:
+            given.add(name)
+    return given
+
+
+def resumed_args(args: Args, checkpoint: dict, given: set[str]) -> Args:
+    """The checkpoint's settings; a conflicting flag on the command line is an error."""
+    saved = Args(**checkpoint["args"])
+    for name in sorted(given - RESUME_OVERRIDABLE):
+        if getattr(args, name) != getattr(saved, name):
+            fail(f"--{name.replace('_', '-')} {getattr(args, name)} differs from the checkpoint's "
+                 f"{getattr(saved, name)}; a resumed run keeps its settings (drop the flag)")
+    for name in given & RESUME_OVERRIDABLE:
+        setattr(saved, name, getattr(args, name))
+    return saved
+
+
+def evaluate_saved(args: Args) -> dict:
+    """--evaluate: the saved policy with its saved observation statistics frozen."""
+    checkpoint = load_checkpoint(args.evaluate)
+    saved = Args(**checkpoint["args"])
+    if args.capture_video:
+        make_render_env(saved.env_id).close()  # fail early, before any episode is run
+    torch.set_num_threads(args.torch_threads)
+    actor = actor_from_checkpoint(checkpoint)
+    stats = checkpoint["obs_stats"]
+    evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed)
+    returns = evaluator(actor, stats, args.deterministic)
+    mode = "deterministic" if args.deterministic else "stochastic"
+    print(f"{saved.env_id}, PPO, step {checkpoint['global_step']}: "
+          f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
+    result = {"returns": returns}
+    evaluator.close()
+    if args.capture_video:
+        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
+        video_return = record_video(actor, stats, saved.env_id, path, args.deterministic, args.seed)
+        print(f"video of one episode (return {video_return:.1f}): {path}")
+    return result
 
 
 def main() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
-    train(args)
+    if args.evaluate:
+        evaluate_saved(args)
+        return
+    checkpoint = None
+    if args.resume:
+        checkpoint = load_checkpoint(args.resume)
+        args = resumed_args(args, checkpoint, explicit_fields(sys.argv[1:]))
+    train(args, checkpoint)
 
 
 if __name__ == "__main__":

@@ -7,11 +7,11 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def run_script(script, *args, timeout=600):
+def run_script(script, *args, timeout=600, env=None):
     """Run one of the top-level scripts as a user would; returns the CompletedProcess."""
     return subprocess.run(
         [sys.executable, os.path.join(ROOT, script), *map(str, args)],
-        capture_output=True, text=True, timeout=timeout, cwd=ROOT,
+        capture_output=True, text=True, timeout=timeout, cwd=ROOT, env={**os.environ, **(env or {})},
     )
 
 
