@@ -1,0 +1,710 @@
+"""Cascade trained with PPO on discrete-action tasks (single-file, CleanRL style).
+
+Cascade grows an ensemble policy one base net at a time. Every `k` env steps a new base net b_i is
+stacked on the ensemble C_{i-1}; besides its action logits it emits a fallback weight
+lambda_i(x) in [0, 1] and the ensemble's logits become
+
+    C_i(x) = lambda_i(x) * C_{i-1}(x) + (1 - lambda_i(x)) * b_i(x)        (the policy: Categorical(C_n))
+
+Box action spaces of A dims are discretized into the 2^A corners of the box (paper Appendix I), so
+the MuJoCo tasks can be compared with discrete PPO (`ppo_baseline_discrete.py`, paper Fig. 16);
+natively discrete envs such as CartPole-v1 are used as they are. PPO runs with CleanRL `ppo.py`'s
+hyperparameters; each iteration gets a fresh critic, a fresh Adam and a fresh learning-rate cycle.
+Paper: Schmöcker & Dockhorn, "Cascade - A sequential ensemble method for continuous control tasks",
+RLJ 2025. See SPEC.md §7 (and §2-§6 for what is shared with the continuous version).
+
+    python cascade_ppo_discrete.py --env-id Hopper-v4 --n 10 --k 1000000
+    tensorboard --logdir runs
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import random
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import tyro
+
+# The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
+warnings.filterwarnings("ignore", message=".*is out of date.*")
+
+
+@dataclass
+class Args:
+    exp_name: str = "cascade_ppo_discrete"
+    """the name of this experiment (part of the run name)"""
+    seed: int = 1
+    """seed of the experiment (python, numpy, torch and the environments)"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    torch_threads: int = 1
+    """torch CPU threads; 1 is fastest for these small nets"""
+    cuda: bool = False
+    """use CUDA if available (small nets are usually faster on the CPU)"""
+    track_dir: str = "runs"
+    """folder under which the run folder `runs/<run_name>` is created"""
+
+    # Environment
+    env_id: str = "Hopper-v4"
+    """the id of a gymnasium environment with a Discrete action space, or a Box one to discretize (e.g. Hopper-v4)"""
+    discretize: Literal["auto", "on", "off"] = "auto"
+    """auto: discretize a Box action space into 2^A actions, use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
+    normalize: bool = True
+    """observation and reward normalization (clip ±10) on discretized Box envs, as cascade_ppo_continuous.py (`--no-normalize`: Fig. 13); natively discrete envs (e.g. CartPole-v1) are never normalized, as in CleanRL ppo.py"""
+
+    # Cascade
+    n: int = 10
+    """number of base nets, i.e. iterations of Cascade (the run lasts n*k steps; paper Fig. 16: 10)"""
+    k: int = 1_000_000
+    """environment steps per iteration; a new base net is added every k steps"""
+    hidden_size: int = 64
+    """width of each hidden layer of a base net (paper, discrete actions: 64)"""
+    num_layers: int = 2
+    """number of hidden layers of a base net"""
+    fallback_init: float = 0.5
+    """initial fallback weight lambda of each new base net, in (0, 1) (Fig. 11: 0.05, 0.5, 0.9)"""
+    freeze_previous: bool = False
+    """only the newest base net trains; older ones are frozen (Fig. 4, 13 ablation)"""
+    start_full: bool = False
+    """build all n base nets at the start instead of one per iteration (Fig. 5 ablation)"""
+    lr_schedule: Literal["cyclic", "global", "constant"] = "cyclic"
+    """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (Fig. 12)"""
+
+    # PPO (CleanRL ppo.py defaults)
+    learning_rate: float = 2.5e-4
+    """initial learning rate of the optimizer"""
+    num_envs: int = 4
+    """number of parallel training environments"""
+    num_steps: int = 128
+    """steps per environment per rollout"""
+    gamma: float = 0.99
+    """discount factor"""
+    gae_lambda: float = 0.95
+    """lambda of generalized advantage estimation"""
+    num_minibatches: int = 4
+    """number of minibatches per epoch"""
+    update_epochs: int = 4
+    """number of epochs over each rollout"""
+    norm_adv: bool = True
+    """normalize advantages per minibatch"""
+    clip_coef: float = 0.2
+    """surrogate clipping coefficient"""
+    clip_vloss: bool = True
+    """use a clipped value loss"""
+    ent_coef: float = 0.01
+    """entropy bonus coefficient"""
+    vf_coef: float = 0.5
+    """value loss coefficient"""
+    max_grad_norm: float = 0.5
+    """global gradient-norm clip"""
+    target_kl: float | None = None
+    """stop an update early when the approximate KL exceeds this (off by default)"""
+
+    # Evaluation (SPEC §6)
+    eval_every: int = 10_000
+    """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
+    eval_episodes: int = 10
+    """episodes per evaluation (stochastic policy, frozen observation statistics)"""
+
+
+# ----------------------------------------------------------------------------------------------
+# Environment plumbing
+# ----------------------------------------------------------------------------------------------
+OBS_CLIP = 10.0
+REWARD_CLIP = 10.0
+NORM_EPS = 1e-8  # the epsilon of gymnasium's NormalizeObservation
+MAX_DISCRETIZED_DIMS = 10  # 2^10 = 1024 actions; Humanoid's 17 dims (131072 actions) are out of scope
+
+
+def fail(message: str) -> None:
+    """Stop with a one-line error and a non-zero exit code."""
+    raise SystemExit(f"error: {message}")
+
+
+def check_env_id(env_id: str) -> None:
+    if env_id not in gym.envs.registry:
+        import difflib
+
+        close = difflib.get_close_matches(env_id, list(gym.envs.registry), n=3)
+        hint = f" Did you mean {', '.join(close)}?" if close else ""
+        fail(f"unknown env id '{env_id}'.{hint} (see gymnasium's registry, e.g. CartPole-v1, Hopper-v4)")
+
+
+def discretize_problem(space: gym.spaces.Box) -> str | None:
+    """Why `space` cannot be discretized into its 2^A corners, or None if it can."""
+    dims = int(np.prod(space.shape))
+    if dims > MAX_DISCRETIZED_DIMS:
+        return (f"a Box action space of {dims} dims would become 2^{dims} = {2**dims} discrete actions; "
+                f"at most {MAX_DISCRETIZED_DIMS} dims ({2**MAX_DISCRETIZED_DIMS} actions) are supported")
+    if not (np.all(np.isfinite(space.low)) and np.all(np.isfinite(space.high))):
+        return "a Box action space with infinite bounds has no corners to discretize into"
+    return None
+
+
+class DiscretizeAction(gym.ActionWrapper):
+    """Box action space of A dims -> Discrete(2^A), the discretization of the paper's Appendix I.
+
+    Action i, with binary digits i_1 ... i_A (i_1 the most significant), is the box corner
+    a_j = low_j * i_j + high_j * (1 - i_j): digit 1 picks the lower bound, digit 0 the upper one.
+    """
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        space = env.action_space
+        problem = discretize_problem(space)
+        if problem is not None:
+            raise ValueError(problem)
+        low, high = space.low.reshape(-1), space.high.reshape(-1)
+        dims = low.size
+        # bits[i, j] = i_{j+1}: shift the most significant digit down first
+        bits = (np.arange(2**dims)[:, None] >> np.arange(dims - 1, -1, -1)) & 1
+        self.corners = (low * bits + high * (1 - bits)).astype(space.dtype).reshape(-1, *space.shape)
+        self.action_space = gym.spaces.Discrete(2**dims)
+
+    def action(self, action: int) -> np.ndarray:
+        return self.corners[int(action)].copy()
+
+
+def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool) -> Callable[[], gym.Env]:
+    """Per env: raw episode stats, the 2^A discretization and (for discretized MuJoCo tasks) the
+    obs/reward normalization of the continuous scripts. `normalize` is already resolved (see `resolve`)."""
+
+    def thunk() -> gym.Env:
+        env = gym.make(env_id)
+        env = gym.wrappers.RecordEpisodeStatistics(env)  # raw, unnormalized returns
+        if discretize:
+            env = DiscretizeAction(env)  # corners lie inside the box: no ClipAction needed
+        if normalize:
+            env = gym.wrappers.NormalizeObservation(env)
+            env = gym.wrappers.TransformObservation(
+                env, lambda obs: np.clip(obs, -OBS_CLIP, OBS_CLIP), env.observation_space
+            )
+            env = gym.wrappers.NormalizeReward(env, gamma=gamma)
+            env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -REWARD_CLIP, REWARD_CLIP))
+        return env
+
+    return thunk
+
+
+def make_vector_env(args: Args, discretize: bool, normalize: bool) -> gym.vector.SyncVectorEnv:
+    # SAME_STEP: the obs returned on a done step is already the reset one, so every stored
+    # transition is real (the default NEXT_STEP mode inserts a fake step after each episode).
+    return gym.vector.SyncVectorEnv(
+        [make_env(args.env_id, args.gamma, discretize, normalize) for _ in range(args.num_envs)],
+        autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
+    )
+
+
+def find_wrapper(env: gym.Env, wrapper_type: type) -> gym.Wrapper | None:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, wrapper_type):
+            return env
+        env = env.env
+    return None
+
+
+def obs_statistics(envs: gym.vector.SyncVectorEnv) -> tuple[np.ndarray, np.ndarray] | None:
+    """Copy of the first training env's observation mean/var (None without normalization)."""
+    norm = find_wrapper(envs.envs[0], gym.wrappers.NormalizeObservation)
+    if norm is None:
+        return None
+    return norm.obs_rms.mean.copy(), norm.obs_rms.var.copy()
+
+
+def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """What the training wrappers do to a raw observation, with frozen statistics."""
+    if stats is None:
+        return obs.astype(np.float32)
+    mean, var = stats
+    return np.clip((obs - mean) / np.sqrt(var + NORM_EPS), -OBS_CLIP, OBS_CLIP).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# The Cascade net
+# ----------------------------------------------------------------------------------------------
+def orthogonal_linear(in_features: int, out_features: int, gain: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weight [in, out] (orthogonal init with `gain`) and zero bias [1, out] of one linear layer."""
+    weight = torch.empty(out_features, in_features)
+    nn.init.orthogonal_(weight, gain)
+    return weight.T.contiguous(), torch.zeros(1, out_features)
+
+
+def contributions(fallback: torch.Tensor) -> torch.Tensor:
+    """Share w_i of each base net in the ensemble output, from the fallbacks of nets 2..n.
+
+    Unrolling C_i = l_i*C_{i-1} + (1-l_i)*b_i gives C_n = sum_i w_i*b_i with
+    w_i = (1 - l_i) * prod_{j>i} l_j and l_1 := 0; w_1 = prod_{j>=2} l_j is the fallback product.
+    fallback: [n-1, B, 1] -> contributions [n, B, 1], summing to 1 over nets.
+    """
+    ones = fallback.new_ones((1, *fallback.shape[1:]))
+    # later[i] = prod_{j>i} l_j: a reverse cumulative product over the nets above net i
+    later = torch.cat([torch.cumprod(fallback.flip(0), 0).flip(0), ones])
+    return torch.cat([ones, 1.0 - fallback]) * later
+
+
+class CascadeActor(nn.Module):
+    """A stack of base nets `obs -> H -> ... -> H -> logits (+ fallback logit)`, tanh, evaluated together.
+
+    The base nets' weights are stacked along a leading net axis ([n, in, out]) so every layer of all
+    nets is one batched matmul; the nets' logits are then combined with the closed form of
+    `contributions`. Net 1 (the bottom) has no fallback head, so the fallback head holds nets 2..n only.
+    """
+
+    def __init__(self, obs_dim: int, num_actions: int, hidden_size: int, num_layers: int, fallback_init: float):
+        super().__init__()
+        self.obs_dim, self.num_actions = obs_dim, num_actions
+        self.hidden_size, self.num_layers = hidden_size, num_layers
+        self.fallback_init = fallback_init
+        self.num_frozen = 0  # base nets 1..num_frozen get no gradient (--freeze-previous)
+        dims = [obs_dim] + [hidden_size] * num_layers
+        self.hidden_weights = nn.ParameterList(
+            [nn.Parameter(torch.empty(0, i, o)) for i, o in zip(dims[:-1], dims[1:])]
+        )
+        self.hidden_biases = nn.ParameterList([nn.Parameter(torch.empty(0, 1, o)) for o in dims[1:]])
+        self.logits_weight = nn.Parameter(torch.empty(0, hidden_size, num_actions))
+        self.logits_bias = nn.Parameter(torch.empty(0, 1, num_actions))
+        self.fallback_weight = nn.Parameter(torch.empty(0, hidden_size, 1))
+        self.fallback_bias = nn.Parameter(torch.empty(0, 1, 1))
+
+    @property
+    def size(self) -> int:
+        """number of base nets in the cascade"""
+        return self.logits_weight.shape[0]
+
+    def base_net_parameters(self) -> list[tuple[str, nn.Parameter, int]]:
+        """(name, stacked parameter, index of the net its first row belongs to)."""
+        params = [(f"hidden_weights.{i}", p, 0) for i, p in enumerate(self.hidden_weights)]
+        params += [(f"hidden_biases.{i}", p, 0) for i, p in enumerate(self.hidden_biases)]
+        params += [("logits_weight", self.logits_weight, 0), ("logits_bias", self.logits_bias, 0)]
+        params += [("fallback_weight", self.fallback_weight, 1), ("fallback_bias", self.fallback_bias, 1)]
+        return params
+
+    def add_base_net(self) -> None:
+        """Stack a freshly initialized base net on top (new stacked Parameters: rebuild the optimizer)."""
+        dims = [self.obs_dim] + [self.hidden_size] * self.num_layers
+        grown: dict[str, torch.Tensor] = {}
+        for i, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
+            grown[f"hidden_weights.{i}"], grown[f"hidden_biases.{i}"] = orthogonal_linear(d_in, d_out, math.sqrt(2))
+        is_bottom = self.size == 0
+        # gain 0.01 as CleanRL ppo.py's actor head: the new net starts near-uniform
+        weight, bias = orthogonal_linear(self.hidden_size, self.num_actions + (0 if is_bottom else 1), 0.01)
+        grown["logits_weight"], grown["logits_bias"] = weight[:, : self.num_actions], bias[:, : self.num_actions]
+        if not is_bottom:
+            grown["fallback_weight"] = weight[:, self.num_actions :]
+            # sigmoid(logit(l0)) = l0: the new net starts by deferring a share l0 to the nets below
+            grown["fallback_bias"] = torch.full((1, 1), math.log(self.fallback_init / (1 - self.fallback_init)))
+        for name, param, _ in self.base_net_parameters():
+            if name in grown:
+                new = torch.cat([param.data, grown[name].unsqueeze(0).to(param.device)])
+                self._replace(name, nn.Parameter(new))
+        self._register_freeze_hooks()
+
+    def _replace(self, name: str, param: nn.Parameter) -> None:
+        if "." in name:
+            list_name, index = name.split(".")
+            getattr(self, list_name)[int(index)] = param
+        else:
+            setattr(self, name, param)
+
+    def freeze_below(self, num_frozen: int) -> None:
+        """Give no gradient to base nets 1..num_frozen (the rest train)."""
+        self.num_frozen = num_frozen
+
+    def _register_freeze_hooks(self) -> None:
+        for _, param, first_net in self.base_net_parameters():
+
+            def mask(grad: torch.Tensor, first_net: int = first_net) -> torch.Tensor:
+                rows = max(self.num_frozen - first_net, 0)
+                if rows == 0:
+                    return grad
+                grad = grad.clone()
+                grad[:rows] = 0.0
+                return grad
+
+            param.register_hook(mask)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """obs [B, obs_dim] -> logits [B, K], fallback [n-1, B], contribution [n, B]."""
+        hidden = obs.expand(self.size, *obs.shape)  # every base net reads the same observation
+        for weight, bias in zip(self.hidden_weights, self.hidden_biases):
+            hidden = torch.tanh(torch.baddbmm(bias, hidden, weight))  # [n, B, H], all nets at once
+        logits = torch.baddbmm(self.logits_bias, hidden, self.logits_weight)  # [n, B, K]
+        fallback = torch.sigmoid(torch.baddbmm(self.fallback_bias, hidden[1:], self.fallback_weight))
+        weight = contributions(fallback)  # [n, B, 1]
+        return (weight * logits).sum(0), fallback.squeeze(-1), weight.squeeze(-1)  # C_n = sum_i w_i b_i
+
+    def member(self, obs: torch.Tensor, net: int) -> torch.Tensor:
+        """Logits of base net `net` (0-based) acting alone."""
+        hidden = obs
+        for weight, bias in zip(self.hidden_weights, self.hidden_biases):
+            hidden = torch.tanh(torch.addmm(bias[net], hidden, weight[net]))
+        return torch.addmm(self.logits_bias[net], hidden, self.logits_weight[net])
+
+
+def make_critic(obs_dim: int) -> nn.Sequential:
+    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh), recreated at every Cascade iteration."""
+
+    def layer(i: int, o: int, gain: float) -> nn.Linear:
+        linear = nn.Linear(i, o)
+        nn.init.orthogonal_(linear.weight, gain)
+        nn.init.zeros_(linear.bias)
+        return linear
+
+    return nn.Sequential(
+        layer(obs_dim, 64, math.sqrt(2)), nn.Tanh(), layer(64, 64, math.sqrt(2)), nn.Tanh(), layer(64, 1, 1.0)
+    )
+
+
+def count_parameters(*modules: nn.Module) -> int:
+    return sum(p.numel() for m in modules for p in m.parameters())
+
+
+# ----------------------------------------------------------------------------------------------
+# Evaluation (SPEC §6): frozen policy, frozen obs statistics, separate envs, stochastic actions
+# ----------------------------------------------------------------------------------------------
+class Evaluator:
+    """Runs `episodes` episodes side by side on its own envs; never touches the training envs."""
+
+    def __init__(self, env_id: str, episodes: int, seed: int, discretize: bool):
+        self.envs = [DiscretizeAction(gym.make(env_id)) if discretize else gym.make(env_id) for _ in range(episodes)]
+        self.seed = seed
+        self.calls = 0
+        self.generator = torch.Generator().manual_seed(seed)  # keeps training's RNG stream untouched
+
+    @torch.inference_mode()
+    def __call__(
+        self,
+        actor: CascadeActor,
+        stats: tuple[np.ndarray, np.ndarray] | None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Returns each episode's undiscounted raw return and the std of each fallback within it [episodes, n-1]."""
+        episodes = len(self.envs)
+        base_seed = self.seed + 100_003 * (self.calls + 1)
+        self.calls += 1
+        obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
+        returns = np.zeros(episodes)
+        fallbacks: list[list[np.ndarray]] = [[] for _ in range(episodes)]
+        active = list(range(episodes))
+        while active:
+            x = torch.as_tensor(normalize_obs(obs[active], stats))
+            logits, fallback, _ = actor(x)
+            if deterministic:
+                action = logits.argmax(-1).numpy()
+            else:
+                action = torch.multinomial(logits.softmax(-1), 1, generator=self.generator).squeeze(-1).numpy()
+            still_active = []
+            for row, i in enumerate(active):
+                fallbacks[i].append(fallback[:, row].numpy())
+                o, r, terminated, truncated, _ = self.envs[i].step(int(action[row]))
+                returns[i] += r
+                obs[i] = o
+                if not (terminated or truncated):
+                    still_active.append(i)
+            active = still_active
+        fallback_std = np.stack([np.stack(f).std(0) for f in fallbacks])
+        return returns, fallback_std
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# Training
+# ----------------------------------------------------------------------------------------------
+def resolve(args: Args) -> tuple[bool, bool]:
+    """Probe the env and reject bad input with one clear line before anything is created.
+    Returns (discretize, normalize) as they apply to this env."""
+    if args.n < 1:
+        fail(f"--n must be at least 1 (got {args.n})")
+    if not 0.0 < args.fallback_init < 1.0:
+        fail(f"--fallback-init must lie strictly between 0 and 1 (got {args.fallback_init})")
+    if args.hidden_size < 1 or args.num_layers < 1:
+        fail("--hidden-size and --num-layers must be at least 1")
+    if args.num_envs < 1 or args.num_steps < 1:
+        fail("--num-envs and --num-steps must be at least 1")
+    batch_size = args.num_envs * args.num_steps
+    if args.k < batch_size:
+        fail(f"--k {args.k} is smaller than one rollout batch (num_envs*num_steps = {batch_size}); raise --k")
+    if batch_size % args.num_minibatches:
+        fail(f"the batch size {batch_size} is not divisible by --num-minibatches {args.num_minibatches}")
+    if args.freeze_previous and args.start_full:
+        fail("--freeze-previous and --start-full cannot be combined (no such ablation in the paper)")
+    if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
+        fail("--eval-every must be >= 0 and --eval-episodes >= 1")
+    check_env_id(args.env_id)
+    probe = gym.make(args.env_id)
+    action_space, observation_space = probe.action_space, probe.observation_space
+    probe.close()
+    if not isinstance(observation_space, gym.spaces.Box):
+        fail(f"{args.env_id} has a {type(observation_space).__name__} observation space; this script needs a Box one")
+    if isinstance(action_space, gym.spaces.Discrete):
+        if args.discretize == "on":
+            fail(f"--discretize on needs a Box action space, but {args.env_id} is already discrete "
+                 f"({action_space.n} actions); leave --discretize at auto")
+        if action_space.start != 0:
+            fail(f"{args.env_id}'s actions start at {action_space.start}; only Discrete(n) spaces starting at 0 "
+                 "are supported")
+        return False, False  # as CleanRL ppo.py: natively discrete envs get no normalization
+    if isinstance(action_space, gym.spaces.Box):
+        if args.discretize == "off":
+            fail(f"{args.env_id} has a Box action space: with --discretize off this script needs a discrete env "
+                 "(use --discretize auto, or cascade_ppo_continuous.py)")
+        problem = discretize_problem(action_space)
+        if problem is not None:
+            fail(f"cannot discretize {args.env_id}: {problem}")
+        return True, args.normalize
+    fail(f"{args.env_id} has a {type(action_space).__name__} action space; this script needs a Discrete or Box one")
+
+
+def seed_everything(seed: int, torch_deterministic: bool) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    torch.backends.cudnn.deterministic = torch_deterministic
+
+
+def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) -> dict:
+    """Runs Cascade; returns the final actor, critic and run folder. `on_iteration_start` sees the
+    fresh state of each iteration (used by the tests)."""
+    discretize, normalize = resolve(args)
+    torch.set_num_threads(args.torch_threads)
+    seed_everything(args.seed, args.torch_deterministic)
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+
+    envs = make_vector_env(args, discretize, normalize)
+    obs_dim = int(np.prod(envs.single_observation_space.shape))
+    num_actions = int(envs.single_action_space.n)
+
+    batch_size = args.num_envs * args.num_steps
+    minibatch_size = batch_size // args.num_minibatches
+    updates_per_iteration = args.k // batch_size
+    total_updates = args.n * updates_per_iteration
+    if args.k % batch_size:
+        print(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
+              f"{updates_per_iteration} updates = {updates_per_iteration * batch_size} steps")
+    print(f"{args.env_id}: {num_actions} discrete actions"
+          f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
+
+    from torch.utils.tensorboard import SummaryWriter
+
+    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_dir = os.path.join(args.track_dir, run_name)
+    writer = SummaryWriter(run_dir)
+    writer.add_text(
+        "hyperparameters",
+        "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
+    )
+
+    actor = CascadeActor(obs_dim, num_actions, args.hidden_size, args.num_layers, args.fallback_init).to(device)
+    if args.start_full:
+        for _ in range(args.n):
+            actor.add_base_net()
+    evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed, discretize) if args.eval_every else None
+
+    def evaluate_and_log(step: int) -> None:
+        returns, fallback_std = evaluator(actor, obs_statistics(envs))
+        writer.add_scalar("eval/episodic_return", returns.mean(), step)
+        writer.add_scalar("eval/episodic_return_std", returns.std(), step)
+        for j, std in enumerate(fallback_std.mean(0)):
+            writer.add_scalar(f"cascade/fallback_std/net_{j + 2}", std, step)
+        print(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+
+    # Rollout storage, preallocated once
+    obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
+    actions = torch.zeros((args.num_steps, args.num_envs), dtype=torch.long, device=device)
+    logprobs = torch.zeros((args.num_steps, args.num_envs), device=device)
+    rewards = torch.zeros((args.num_steps, args.num_envs), device=device)
+    dones = torch.zeros((args.num_steps, args.num_envs), device=device)
+    values = torch.zeros((args.num_steps, args.num_envs), device=device)
+    step_fallbacks = torch.zeros((args.num_steps, args.num_envs, args.n - 1), device=device)
+    step_contributions = torch.zeros((args.num_steps, args.num_envs, args.n), device=device)
+
+    global_step = 0
+    start_time = time.time()
+    next_obs_np, _ = envs.reset(seed=args.seed)
+    envs.action_space.seed(args.seed)
+    next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+    next_done = torch.zeros(args.num_envs, device=device)
+    if evaluator is not None:
+        evaluate_and_log(0)
+
+    critic = None
+    for iteration in range(1, args.n + 1):
+        # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
+        if not args.start_full:
+            actor.add_base_net()
+        if args.freeze_previous:
+            actor.freeze_below(actor.size - 1)
+        critic = make_critic(obs_dim).to(device)
+        optimizer = torch.optim.Adam(
+            [*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5
+        )
+        size = actor.size
+        n_params = count_parameters(actor, critic)
+        writer.add_scalar("cascade/size", size, global_step)
+        writer.add_scalar("cascade/parameters", n_params, global_step)
+        print(f"iteration {iteration}/{args.n}: {size} base net(s), {n_params} parameters (actor + critic)")
+        if on_iteration_start is not None:
+            on_iteration_start(
+                {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}
+            )
+
+        for update in range(1, updates_per_iteration + 1):
+            if args.lr_schedule == "cyclic":
+                frac = 1.0 - (update - 1.0) / updates_per_iteration
+            elif args.lr_schedule == "global":
+                frac = 1.0 - ((iteration - 1) * updates_per_iteration + update - 1.0) / total_updates
+            else:
+                frac = 1.0
+            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+
+            # --- rollout ---
+            for step in range(args.num_steps):
+                global_step += args.num_envs
+                obs[step] = next_obs
+                dones[step] = next_done
+                with torch.inference_mode():
+                    logits, fallback, weight = actor(next_obs)
+                    dist = torch.distributions.Categorical(logits=logits)
+                    action = dist.sample()
+                    logprobs[step] = dist.log_prob(action)
+                    values[step] = critic(next_obs).squeeze(-1)
+                actions[step] = action
+                step_fallbacks[step, :, : size - 1] = fallback.T
+                step_contributions[step, :, :size] = weight.T
+
+                next_obs_np, reward, terminations, truncations, infos = envs.step(action.cpu().numpy())
+                rewards[step] = torch.as_tensor(reward, device=device)
+                next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+                next_done = torch.as_tensor(np.logical_or(terminations, truncations), dtype=torch.float32,
+                                            device=device)
+                if "final_info" in infos and "episode" in infos["final_info"]:
+                    finished = infos["final_info"]["_episode"]
+                    for ret, length in zip(infos["final_info"]["episode"]["r"][finished],
+                                           infos["final_info"]["episode"]["l"][finished]):
+                        writer.add_scalar("charts/episodic_return", ret, global_step)
+                        writer.add_scalar("charts/episodic_length", length, global_step)
+                if evaluator is not None and global_step % args.eval_every < args.num_envs:
+                    evaluate_and_log(global_step)
+
+            # --- GAE (CleanRL: an episode end, termination or truncation, cuts the bootstrap) ---
+            with torch.inference_mode():
+                next_value = critic(next_obs).squeeze(-1)
+                advantages = torch.zeros_like(rewards)
+                lastgaelam = 0
+                for t in reversed(range(args.num_steps)):
+                    nextnonterminal = 1.0 - (next_done if t == args.num_steps - 1 else dones[t + 1])
+                    nextvalues = next_value if t == args.num_steps - 1 else values[t + 1]
+                    delta = rewards[t] + args.gamma * nextvalues * nextnonterminal - values[t]
+                    lastgaelam = delta + args.gamma * args.gae_lambda * nextnonterminal * lastgaelam
+                    advantages[t] = lastgaelam
+                returns = advantages + values
+
+            b_obs = obs.reshape(-1, obs_dim)
+            b_logprobs = logprobs.reshape(-1)
+            b_actions = actions.reshape(-1)
+            b_advantages = advantages.reshape(-1)
+            b_returns = returns.reshape(-1)
+            b_values = values.reshape(-1)
+
+            # --- PPO update of the whole stack and the critic ---
+            b_inds = np.arange(batch_size)
+            clipfracs = []
+            for _epoch in range(args.update_epochs):
+                np.random.shuffle(b_inds)
+                for start in range(0, batch_size, minibatch_size):
+                    mb_inds = b_inds[start : start + minibatch_size]
+                    logits, _, _ = actor(b_obs[mb_inds])
+                    dist = torch.distributions.Categorical(logits=logits)
+                    newlogprob = dist.log_prob(b_actions[mb_inds])
+                    entropy = dist.entropy()
+                    newvalue = critic(b_obs[mb_inds]).squeeze(-1)
+                    logratio = newlogprob - b_logprobs[mb_inds]
+                    ratio = logratio.exp()
+                    with torch.no_grad():
+                        old_approx_kl = (-logratio).mean()
+                        approx_kl = ((ratio - 1) - logratio).mean()
+                        clipfracs.append(((ratio - 1.0).abs() > args.clip_coef).float().mean().item())
+
+                    mb_advantages = b_advantages[mb_inds]
+                    if args.norm_adv:
+                        mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
+                    pg_loss1 = -mb_advantages * ratio
+                    pg_loss2 = -mb_advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+                    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+
+                    if args.clip_vloss:
+                        v_loss_unclipped = (newvalue - b_returns[mb_inds]) ** 2
+                        v_clipped = b_values[mb_inds] + torch.clamp(
+                            newvalue - b_values[mb_inds], -args.clip_coef, args.clip_coef
+                        )
+                        v_loss_clipped = (v_clipped - b_returns[mb_inds]) ** 2
+                        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
+                    else:
+                        v_loss = 0.5 * ((newvalue - b_returns[mb_inds]) ** 2).mean()
+
+                    entropy_loss = entropy.mean()
+                    loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef
+
+                    optimizer.zero_grad()
+                    loss.backward()
+                    nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
+                    optimizer.step()
+
+                if args.target_kl is not None and approx_kl > args.target_kl:
+                    break
+
+            y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
+            var_y = np.var(y_true)
+            explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
+
+            # --- logging (CleanRL names + the fallback metrics of SPEC §6) ---
+            writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
+            writer.add_scalar("losses/value_loss", v_loss.item(), global_step)
+            writer.add_scalar("losses/policy_loss", pg_loss.item(), global_step)
+            writer.add_scalar("losses/entropy", entropy_loss.item(), global_step)
+            writer.add_scalar("losses/old_approx_kl", old_approx_kl.item(), global_step)
+            writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
+            writer.add_scalar("losses/clipfrac", np.mean(clipfracs), global_step)
+            writer.add_scalar("losses/explained_variance", explained_var, global_step)
+            # means over the rollout batch, of the lambdas/weights the acting policy used
+            mean_fallback = step_fallbacks[:, :, : size - 1].mean((0, 1))
+            mean_weight = step_contributions[:, :, :size].mean((0, 1))
+            for j, lam in enumerate(mean_fallback.tolist()):
+                writer.add_scalar(f"cascade/fallback/net_{j + 2}", lam, global_step)
+            for j, w in enumerate(mean_weight.tolist()):
+                writer.add_scalar(f"cascade/contribution/net_{j + 1}", w, global_step)
+            writer.add_scalar("cascade/fallback_product", mean_weight[0].item(), global_step)
+            sps = int(global_step / (time.time() - start_time))
+            writer.add_scalar("charts/SPS", sps, global_step)
+            writer.add_scalar("cascade/size", size, global_step)
+
+        print(f"iteration {iteration} done: global_step={global_step}, SPS={int(global_step / (time.time() - start_time))}")
+
+    if evaluator is not None and global_step % args.eval_every >= args.num_envs:
+        evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
+    if evaluator is not None:
+        evaluator.close()
+    envs.close()
+    writer.close()
+    return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step}
+
+
+def main() -> None:
+    args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
+    train(args)
+
+
+if __name__ == "__main__":
+    main()
