@@ -1,0 +1,540 @@
+"""PPO for discrete-action tasks, the discrete baseline of the Cascade paper (single-file, CleanRL style).
+
+Equivalent to CleanRL's `ppo.py` (same 64-64 actor and critic, same hyperparameters) on gymnasium 1.x.
+Box action spaces of A dims are discretized into the 2^A corners of the box (paper Appendix I), which
+gives the "discrete PPO" of the paper's Fig. 16; natively discrete envs such as CartPole-v1 are used
+as they are. Extra flags shared with `ppo_baseline.py`: `--hidden-size`, `--lr-schedule`, `--no-normalize`.
+
+    python ppo_baseline_discrete.py --env-id Hopper-v4 --total-timesteps 10000000
+    tensorboard --logdir runs
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import random
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import tyro
+
+# The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
+warnings.filterwarnings("ignore", message=".*is out of date.*")
+
+
+@dataclass
+class Args:
+    exp_name: str = "ppo_baseline_discrete"
+    """the name of this experiment (part of the run name)"""
+    seed: int = 1
+    """seed of the experiment (python, numpy, torch and the environments)"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    torch_threads: int = 1
+    """torch CPU threads; 1 is fastest for these small nets"""
+    cuda: bool = False
+    """use CUDA if available (small nets are usually faster on the CPU)"""
+    track_dir: str = "runs"
+    """folder under which the run folder `runs/<run_name>` is created"""
+
+    # Environment
+    env_id: str = "Hopper-v4"
+    """the id of a gymnasium environment with a Discrete action space, or a Box one to discretize (e.g. Hopper-v4)"""
+    discretize: Literal["auto", "on", "off"] = "auto"
+    """auto: discretize a Box action space into 2^A actions, use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
+    normalize: bool = True
+    """observation and reward normalization (clip ±10) on discretized Box envs, as ppo_baseline.py (`--no-normalize` turns it off); natively discrete envs (e.g. CartPole-v1) are never normalized, as in CleanRL ppo.py"""
+
+    # Network and schedule
+    total_timesteps: int = 10_000_000
+    """total environment steps of the run (paper Fig. 16: 10M)"""
+    hidden_size: int = 64
+    """width of the two hidden layers of the actor (the critic stays 64-64)"""
+    lr_schedule: Literal["global", "cyclic", "constant"] = "global"
+    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps"""
+    cycle_steps: int = 1_000_000
+    """length of one learning-rate cycle in env steps, with --lr-schedule cyclic"""
+
+    # PPO (CleanRL ppo.py defaults)
+    learning_rate: float = 2.5e-4
+    """initial learning rate of the optimizer"""
+    num_envs: int = 4
+    """number of parallel training environments"""
+    num_steps: int = 128
+    """steps per environment per rollout"""
+    gamma: float = 0.99
+    """discount factor"""
+    gae_lambda: float = 0.95
+    """lambda of generalized advantage estimation"""
+    num_minibatches: int = 4
+    """number of minibatches per epoch"""
+    update_epochs: int = 4
+    """number of epochs over each rollout"""
+    norm_adv: bool = True
+    """normalize advantages per minibatch"""
+    clip_coef: float = 0.2
+    """surrogate clipping coefficient"""
+    clip_vloss: bool = True
+    """use a clipped value loss"""
+    ent_coef: float = 0.01
+    """entropy bonus coefficient"""
+    vf_coef: float = 0.5
+    """value loss coefficient"""
+    max_grad_norm: float = 0.5
+    """global gradient-norm clip"""
+    target_kl: float | None = None
+    """stop an update early when the approximate KL exceeds this (off by default)"""
+
+    # Evaluation (SPEC §6)
+    eval_every: int = 10_000
+    """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
+    eval_episodes: int = 10
+    """episodes per evaluation (stochastic policy, frozen observation statistics)"""
+
+
+# ----------------------------------------------------------------------------------------------
+# Environment plumbing
+# ----------------------------------------------------------------------------------------------
+OBS_CLIP = 10.0
+REWARD_CLIP = 10.0
+NORM_EPS = 1e-8  # the epsilon of gymnasium's NormalizeObservation
+MAX_DISCRETIZED_DIMS = 10  # 2^10 = 1024 actions; Humanoid's 17 dims (131072 actions) are out of scope
+
+
+def fail(message: str) -> None:
+    """Stop with a one-line error and a non-zero exit code."""
+    raise SystemExit(f"error: {message}")
+
+
+def check_env_id(env_id: str) -> None:
+    if env_id not in gym.envs.registry:
+        import difflib
+
+        close = difflib.get_close_matches(env_id, list(gym.envs.registry), n=3)
+        hint = f" Did you mean {', '.join(close)}?" if close else ""
+        fail(f"unknown env id '{env_id}'.{hint} (see gymnasium's registry, e.g. CartPole-v1, Hopper-v4)")
+
+
+def discretize_problem(space: gym.spaces.Box) -> str | None:
+    """Why `space` cannot be discretized into its 2^A corners, or None if it can."""
+    dims = int(np.prod(space.shape))
+    if dims > MAX_DISCRETIZED_DIMS:
+        return (f"a Box action space of {dims} dims would become 2^{dims} = {2**dims} discrete actions; "
+                f"at most {MAX_DISCRETIZED_DIMS} dims ({2**MAX_DISCRETIZED_DIMS} actions) are supported")
+    if not (np.all(np.isfinite(space.low)) and np.all(np.isfinite(space.high))):
+        return "a Box action space with infinite bounds has no corners to discretize into"
+    return None
+
+
+class DiscretizeAction(gym.ActionWrapper):
+    """Box action space of A dims -> Discrete(2^A), the discretization of the paper's Appendix I.
+
+    Action i, with binary digits i_1 ... i_A (i_1 the most significant), is the box corner
+    a_j = low_j * i_j + high_j * (1 - i_j): digit 1 picks the lower bound, digit 0 the upper one.
+    """
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        space = env.action_space
+        problem = discretize_problem(space)
+        if problem is not None:
+            raise ValueError(problem)
+        low, high = space.low.reshape(-1), space.high.reshape(-1)
+        dims = low.size
+        # bits[i, j] = i_{j+1}: shift the most significant digit down first
+        bits = (np.arange(2**dims)[:, None] >> np.arange(dims - 1, -1, -1)) & 1
+        self.corners = (low * bits + high * (1 - bits)).astype(space.dtype).reshape(-1, *space.shape)
+        self.action_space = gym.spaces.Discrete(2**dims)
+
+    def action(self, action: int) -> np.ndarray:
+        return self.corners[int(action)].copy()
+
+
+def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool) -> Callable[[], gym.Env]:
+    """Per env: raw episode stats, the 2^A discretization and (for discretized MuJoCo tasks) the
+    obs/reward normalization of the continuous scripts. `normalize` is already resolved (see `resolve`)."""
+
+    def thunk() -> gym.Env:
+        env = gym.make(env_id)
+        env = gym.wrappers.RecordEpisodeStatistics(env)  # raw, unnormalized returns
+        if discretize:
+            env = DiscretizeAction(env)  # corners lie inside the box: no ClipAction needed
+        if normalize:
+            env = gym.wrappers.NormalizeObservation(env)
+            env = gym.wrappers.TransformObservation(
+                env, lambda obs: np.clip(obs, -OBS_CLIP, OBS_CLIP), env.observation_space
+            )
+            env = gym.wrappers.NormalizeReward(env, gamma=gamma)
+            env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -REWARD_CLIP, REWARD_CLIP))
+        return env
+
+    return thunk
+
+
+def make_vector_env(args: Args, discretize: bool, normalize: bool) -> gym.vector.SyncVectorEnv:
+    # SAME_STEP: the obs returned on a done step is already the reset one, so every stored
+    # transition is real (the default NEXT_STEP mode inserts a fake step after each episode).
+    return gym.vector.SyncVectorEnv(
+        [make_env(args.env_id, args.gamma, discretize, normalize) for _ in range(args.num_envs)],
+        autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
+    )
+
+
+def find_wrapper(env: gym.Env, wrapper_type: type) -> gym.Wrapper | None:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, wrapper_type):
+            return env
+        env = env.env
+    return None
+
+
+def obs_statistics(envs: gym.vector.SyncVectorEnv) -> tuple[np.ndarray, np.ndarray] | None:
+    """Copy of the first training env's observation mean/var (None without normalization)."""
+    norm = find_wrapper(envs.envs[0], gym.wrappers.NormalizeObservation)
+    if norm is None:
+        return None
+    return norm.obs_rms.mean.copy(), norm.obs_rms.var.copy()
+
+
+def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """What the training wrappers do to a raw observation, with frozen statistics."""
+    if stats is None:
+        return obs.astype(np.float32)
+    mean, var = stats
+    return np.clip((obs - mean) / np.sqrt(var + NORM_EPS), -OBS_CLIP, OBS_CLIP).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# The agent (CleanRL ppo.py)
+# ----------------------------------------------------------------------------------------------
+def layer_init(in_features: int, out_features: int, gain: float) -> nn.Linear:
+    linear = nn.Linear(in_features, out_features)
+    nn.init.orthogonal_(linear.weight, gain)
+    nn.init.zeros_(linear.bias)
+    return linear
+
+
+def make_actor(obs_dim: int, num_actions: int, hidden_size: int) -> nn.Sequential:
+    """Categorical policy logits, obs -> H -> H -> K (tanh); output gain 0.01 as CleanRL ppo.py."""
+    return nn.Sequential(
+        layer_init(obs_dim, hidden_size, math.sqrt(2)), nn.Tanh(),
+        layer_init(hidden_size, hidden_size, math.sqrt(2)), nn.Tanh(),
+        layer_init(hidden_size, num_actions, 0.01),
+    )
+
+
+def make_critic(obs_dim: int) -> nn.Sequential:
+    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh)."""
+    return nn.Sequential(
+        layer_init(obs_dim, 64, math.sqrt(2)), nn.Tanh(),
+        layer_init(64, 64, math.sqrt(2)), nn.Tanh(),
+        layer_init(64, 1, 1.0),
+    )
+
+
+def count_parameters(*modules: nn.Module) -> int:
+    return sum(p.numel() for m in modules for p in m.parameters())
+
+
+# ----------------------------------------------------------------------------------------------
+# Evaluation (SPEC §6): frozen policy, frozen obs statistics, separate envs, stochastic actions
+# ----------------------------------------------------------------------------------------------
+class Evaluator:
+    """Runs `episodes` episodes side by side on its own envs; never touches the training envs."""
+
+    def __init__(self, env_id: str, episodes: int, seed: int, discretize: bool):
+        self.envs = [DiscretizeAction(gym.make(env_id)) if discretize else gym.make(env_id) for _ in range(episodes)]
+        self.seed = seed
+        self.calls = 0
+        self.generator = torch.Generator().manual_seed(seed)  # keeps training's RNG stream untouched
+
+    @torch.inference_mode()
+    def __call__(
+        self,
+        actor: nn.Module,
+        stats: tuple[np.ndarray, np.ndarray] | None,
+        deterministic: bool = False,
+    ) -> np.ndarray:
+        """Returns each episode's undiscounted raw return."""
+        episodes = len(self.envs)
+        base_seed = self.seed + 100_003 * (self.calls + 1)
+        self.calls += 1
+        obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
+        returns = np.zeros(episodes)
+        active = list(range(episodes))
+        while active:
+            logits = actor(torch.as_tensor(normalize_obs(obs[active], stats)))
+            if deterministic:
+                action = logits.argmax(-1).numpy()
+            else:
+                action = torch.multinomial(logits.softmax(-1), 1, generator=self.generator).squeeze(-1).numpy()
+            still_active = []
+            for row, i in enumerate(active):
+                o, r, terminated, truncated, _ = self.envs[i].step(int(action[row]))
+                returns[i] += r
+                obs[i] = o
+                if not (terminated or truncated):
+                    still_active.append(i)
+            active = still_active
+        return returns
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# Training
+# ----------------------------------------------------------------------------------------------
+def resolve(args: Args) -> tuple[bool, bool]:
+    """Probe the env and reject bad input with one clear line before anything is created.
+    Returns (discretize, normalize) as they apply to this env."""
+    if args.hidden_size < 1:
+        fail(f"--hidden-size must be at least 1 (got {args.hidden_size})")
+    if args.num_envs < 1 or args.num_steps < 1:
+        fail("--num-envs and --num-steps must be at least 1")
+    batch_size = args.num_envs * args.num_steps
+    if args.total_timesteps < batch_size:
+        fail(f"--total-timesteps {args.total_timesteps} is smaller than one rollout batch "
+             f"(num_envs*num_steps = {batch_size}); raise it")
+    if args.lr_schedule == "cyclic" and args.cycle_steps < batch_size:
+        fail(f"--cycle-steps {args.cycle_steps} is smaller than one rollout batch ({batch_size})")
+    if batch_size % args.num_minibatches:
+        fail(f"the batch size {batch_size} is not divisible by --num-minibatches {args.num_minibatches}")
+    if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
+        fail("--eval-every must be >= 0 and --eval-episodes >= 1")
+    check_env_id(args.env_id)
+    probe = gym.make(args.env_id)
+    action_space, observation_space = probe.action_space, probe.observation_space
+    probe.close()
+    if not isinstance(observation_space, gym.spaces.Box):
+        fail(f"{args.env_id} has a {type(observation_space).__name__} observation space; this script needs a Box one")
+    if isinstance(action_space, gym.spaces.Discrete):
+        if args.discretize == "on":
+            fail(f"--discretize on needs a Box action space, but {args.env_id} is already discrete "
+                 f"({action_space.n} actions); leave --discretize at auto")
+        if action_space.start != 0:
+            fail(f"{args.env_id}'s actions start at {action_space.start}; only Discrete(n) spaces starting at 0 "
+                 "are supported")
+        return False, False  # as CleanRL ppo.py: natively discrete envs get no normalization
+    if isinstance(action_space, gym.spaces.Box):
+        if args.discretize == "off":
+            fail(f"{args.env_id} has a Box action space: with --discretize off this script needs a discrete env "
+                 "(use --discretize auto, or ppo_baseline.py)")
+        problem = discretize_problem(action_space)
+        if problem is not None:
+            fail(f"cannot discretize {args.env_id}: {problem}")
+        return True, args.normalize
+    fail(f"{args.env_id} has a {type(action_space).__name__} action space; this script needs a Discrete or Box one")
+
+
+def seed_everything(seed: int, torch_deterministic: bool) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    torch.backends.cudnn.deterministic = torch_deterministic
+
+
+def train(args: Args) -> dict:
+    """Runs PPO; returns the final actor, critic and run folder."""
+    discretize, normalize = resolve(args)
+    torch.set_num_threads(args.torch_threads)
+    seed_everything(args.seed, args.torch_deterministic)
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+
+    envs = make_vector_env(args, discretize, normalize)
+    obs_dim = int(np.prod(envs.single_observation_space.shape))
+    num_actions = int(envs.single_action_space.n)
+
+    batch_size = args.num_envs * args.num_steps
+    minibatch_size = batch_size // args.num_minibatches
+    total_updates = args.total_timesteps // batch_size
+    updates_per_cycle = max(args.cycle_steps // batch_size, 1)
+    if args.total_timesteps % batch_size:
+        print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
+              f"the run does {total_updates} updates = {total_updates * batch_size} steps")
+    print(f"{args.env_id}: {num_actions} discrete actions"
+          f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
+
+    from torch.utils.tensorboard import SummaryWriter
+
+    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_dir = os.path.join(args.track_dir, run_name)
+    writer = SummaryWriter(run_dir)
+    writer.add_text(
+        "hyperparameters",
+        "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
+    )
+
+    actor = make_actor(obs_dim, num_actions, args.hidden_size).to(device)
+    critic = make_critic(obs_dim).to(device)
+    optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5)
+    n_params = count_parameters(actor, critic)
+    print(f"PPO: {n_params} parameters (actor + critic)")
+    evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed, discretize) if args.eval_every else None
+
+    def evaluate_and_log(step: int) -> None:
+        returns = evaluator(actor, obs_statistics(envs))
+        writer.add_scalar("eval/episodic_return", returns.mean(), step)
+        writer.add_scalar("eval/episodic_return_std", returns.std(), step)
+        print(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+
+    # Rollout storage, preallocated once
+    obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
+    actions = torch.zeros((args.num_steps, args.num_envs), dtype=torch.long, device=device)
+    logprobs = torch.zeros((args.num_steps, args.num_envs), device=device)
+    rewards = torch.zeros((args.num_steps, args.num_envs), device=device)
+    dones = torch.zeros((args.num_steps, args.num_envs), device=device)
+    values = torch.zeros((args.num_steps, args.num_envs), device=device)
+
+    global_step = 0
+    start_time = time.time()
+    next_obs_np, _ = envs.reset(seed=args.seed)
+    envs.action_space.seed(args.seed)
+    next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+    next_done = torch.zeros(args.num_envs, device=device)
+    if evaluator is not None:
+        evaluate_and_log(0)
+    writer.add_scalar("charts/parameters", n_params, global_step)
+
+    for update in range(1, total_updates + 1):
+        if args.lr_schedule == "global":
+            frac = 1.0 - (update - 1.0) / total_updates
+        elif args.lr_schedule == "cyclic":
+            frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle
+        else:
+            frac = 1.0
+        optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+
+        # --- rollout ---
+        for step in range(args.num_steps):
+            global_step += args.num_envs
+            obs[step] = next_obs
+            dones[step] = next_done
+            with torch.inference_mode():
+                dist = torch.distributions.Categorical(logits=actor(next_obs))
+                action = dist.sample()
+                logprobs[step] = dist.log_prob(action)
+                values[step] = critic(next_obs).squeeze(-1)
+            actions[step] = action
+
+            next_obs_np, reward, terminations, truncations, infos = envs.step(action.cpu().numpy())
+            rewards[step] = torch.as_tensor(reward, device=device)
+            next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+            next_done = torch.as_tensor(np.logical_or(terminations, truncations), dtype=torch.float32,
+                                        device=device)
+            if "final_info" in infos and "episode" in infos["final_info"]:
+                finished = infos["final_info"]["_episode"]
+                for ret, length in zip(infos["final_info"]["episode"]["r"][finished],
+                                       infos["final_info"]["episode"]["l"][finished]):
+                    writer.add_scalar("charts/episodic_return", ret, global_step)
+                    writer.add_scalar("charts/episodic_length", length, global_step)
+            if evaluator is not None and global_step % args.eval_every < args.num_envs:
+                evaluate_and_log(global_step)
+
+        # --- GAE (CleanRL: an episode end, termination or truncation, cuts the bootstrap) ---
+        with torch.inference_mode():
+            next_value = critic(next_obs).squeeze(-1)
+            advantages = torch.zeros_like(rewards)
+            lastgaelam = 0
+            for t in reversed(range(args.num_steps)):
+                nextnonterminal = 1.0 - (next_done if t == args.num_steps - 1 else dones[t + 1])
+                nextvalues = next_value if t == args.num_steps - 1 else values[t + 1]
+                delta = rewards[t] + args.gamma * nextvalues * nextnonterminal - values[t]
+                lastgaelam = delta + args.gamma * args.gae_lambda * nextnonterminal * lastgaelam
+                advantages[t] = lastgaelam
+            returns = advantages + values
+
+        b_obs = obs.reshape(-1, obs_dim)
+        b_logprobs = logprobs.reshape(-1)
+        b_actions = actions.reshape(-1)
+        b_advantages = advantages.reshape(-1)
+        b_returns = returns.reshape(-1)
+        b_values = values.reshape(-1)
+
+        # --- PPO update ---
+        b_inds = np.arange(batch_size)
+        clipfracs = []
+        for _epoch in range(args.update_epochs):
+            np.random.shuffle(b_inds)
+            for start in range(0, batch_size, minibatch_size):
+                mb_inds = b_inds[start : start + minibatch_size]
+                dist = torch.distributions.Categorical(logits=actor(b_obs[mb_inds]))
+                newlogprob = dist.log_prob(b_actions[mb_inds])
+                entropy = dist.entropy()
+                newvalue = critic(b_obs[mb_inds]).squeeze(-1)
+                logratio = newlogprob - b_logprobs[mb_inds]
+                ratio = logratio.exp()
+                with torch.no_grad():
+                    old_approx_kl = (-logratio).mean()
+                    approx_kl = ((ratio - 1) - logratio).mean()
+                    clipfracs.append(((ratio - 1.0).abs() > args.clip_coef).float().mean().item())
+
+                mb_advantages = b_advantages[mb_inds]
+                if args.norm_adv:
+                    mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
+                pg_loss1 = -mb_advantages * ratio
+                pg_loss2 = -mb_advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+                pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+
+                if args.clip_vloss:
+                    v_loss_unclipped = (newvalue - b_returns[mb_inds]) ** 2
+                    v_clipped = b_values[mb_inds] + torch.clamp(
+                        newvalue - b_values[mb_inds], -args.clip_coef, args.clip_coef
+                    )
+                    v_loss_clipped = (v_clipped - b_returns[mb_inds]) ** 2
+                    v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
+                else:
+                    v_loss = 0.5 * ((newvalue - b_returns[mb_inds]) ** 2).mean()
+
+                entropy_loss = entropy.mean()
+                loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef
+
+                optimizer.zero_grad()
+                loss.backward()
+                nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
+                optimizer.step()
+
+            if args.target_kl is not None and approx_kl > args.target_kl:
+                break
+
+        y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
+        var_y = np.var(y_true)
+        explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
+
+        # --- logging (CleanRL names) ---
+        writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
+        writer.add_scalar("losses/value_loss", v_loss.item(), global_step)
+        writer.add_scalar("losses/policy_loss", pg_loss.item(), global_step)
+        writer.add_scalar("losses/entropy", entropy_loss.item(), global_step)
+        writer.add_scalar("losses/old_approx_kl", old_approx_kl.item(), global_step)
+        writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
+        writer.add_scalar("losses/clipfrac", np.mean(clipfracs), global_step)
+        writer.add_scalar("losses/explained_variance", explained_var, global_step)
+        sps = int(global_step / (time.time() - start_time))
+        writer.add_scalar("charts/SPS", sps, global_step)
+
+    if evaluator is not None and global_step % args.eval_every >= args.num_envs:
+        evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
+    if evaluator is not None:
+        evaluator.close()
+    envs.close()
+    writer.close()
+    return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step}
+
+
+def main() -> None:
+    args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
+    train(args)
+
+
+if __name__ == "__main__":
+    main()
