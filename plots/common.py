@@ -1,0 +1,439 @@
+"""Shared plumbing of the plot scripts: find run folders, read their TensorBoard logs, group them over seeds.
+
+A run folder is `<env_id>__<exp_name>__<seed>__<timestamp>` (what every training script of this
+repository writes) holding TensorBoard event files. Runs are grouped by (env, experiment): each
+figure draws one panel per env and one curve per experiment, averaged over the experiment's seeds.
+Everything that goes wrong (no matching runs, a missing scalar, a run whose folder name and logged
+settings disagree) stops with a one-line `error: ...` naming what was looked for and what was found.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import re
+import sys
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import NoReturn
+
+import numpy as np
+
+RUN_NAME = re.compile(r"^(?P<env>.+?)__(?P<exp>.+)__(?P<seed>-?\d+)__(?P<time>\d+)$")
+HPARAMS_TAG = "hyperparameters/text_summary"
+
+# Okabe & Ito's colourblind-safe palette (yellow last: it is hard to see on white).
+OKABE_ITO = ["#0072B2", "#D55E00", "#009E73", "#E69F00", "#56B4E9", "#CC79A7", "#000000", "#F0E442"]
+
+DEFAULT_LABELS = {
+    "cascade_ppo_continuous": "Cascade",
+    "ppo_baseline": "PPO",
+    "cascade_ppo_discrete": "Cascade (discrete)",
+    "ppo_baseline_discrete": "PPO (discrete)",
+}
+
+# Settings that do not change what a run learns: runs differing only in these are the same experiment.
+NOT_SETTINGS = {
+    "seed", "exp_name", "track_dir", "quiet", "torch_threads", "torch_deterministic", "cuda", "resume",
+    "evaluate", "deterministic", "members", "capture_video", "checkpoint_every", "eval_in_worker",
+}
+
+
+def fail(message: str) -> NoReturn:
+    """Stop with a one-line error and a non-zero exit code."""
+    raise SystemExit(f"error: {message}")
+
+
+def note(message: str) -> None:
+    """A one-line remark on stderr that does not stop the script."""
+    print(f"note: {message}", file=sys.stderr)
+
+
+def short_list(items: Iterable[str], limit: int = 12) -> str:
+    items = list(items)
+    more = f", … ({len(items) - limit} more)" if len(items) > limit else ""
+    return ", ".join(items[:limit]) + more if items else "nothing"
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading runs
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Series:
+    """One logged scalar of one run, in the order it was logged."""
+
+    steps: np.ndarray
+    values: np.ndarray
+    wall_times: np.ndarray
+
+    def by_step(self) -> dict[int, float]:
+        """step -> value; a step logged twice keeps its last value."""
+        return {int(s): float(v) for s, v in zip(self.steps, self.values)}
+
+    def last(self, window: int = 1) -> float:
+        """Mean of the last `window` values (one per step)."""
+        values = list(self.by_step().values())
+        return float(np.mean(values[-window:]))
+
+
+@dataclass
+class Run:
+    """One run folder: its name parts, its logged hyperparameters and its scalars."""
+
+    path: str
+    env_id: str
+    exp_name: str
+    seed: int
+    timestamp: int
+    hparams: dict[str, str] = field(default_factory=dict)
+    scalars: dict[str, Series] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return os.path.basename(self.path)
+
+    def series(self, tag: str) -> Series:
+        if tag not in self.scalars:
+            fail(f"run {self.path} does not log '{tag}' (it logs: {short_list(sorted(self.scalars))})")
+        return self.scalars[tag]
+
+    def last_step(self) -> int:
+        return max((int(s.steps.max()) for s in self.scalars.values() if len(s.steps)), default=0)
+
+
+def parse_run_name(name: str) -> tuple[str, str, int, int] | None:
+    """(env_id, exp_name, seed, timestamp) of a run folder name, or None if it is not one."""
+    match = RUN_NAME.match(name)
+    if match is None:
+        return None
+    return match["env"], match["exp"], int(match["seed"]), int(match["time"])
+
+
+def has_event_files(folder: str) -> bool:
+    return any(f.startswith("events.out.tfevents") for f in os.listdir(folder))
+
+
+def find_run_dirs(roots: Sequence[str]) -> list[str]:
+    """Every folder under `roots` (at any depth) that is named like a run and holds event files."""
+    found = []
+    for root in roots:
+        if not os.path.isdir(root):
+            fail(f"runs folder '{root}' does not exist")
+        for folder, _dirs, _files in os.walk(root):
+            if parse_run_name(os.path.basename(folder)) and has_event_files(folder):
+                found.append(folder)
+    return sorted(found)
+
+
+def parse_hparams(text: str) -> dict[str, str]:
+    """The `|param|value|` Markdown table the training scripts log as text."""
+    hparams = {}
+    for line in text.splitlines():
+        cells = line.strip().strip("|").split("|")
+        if len(cells) == 2 and cells[0] not in ("param", "-"):
+            hparams[cells[0]] = cells[1]
+    return hparams
+
+
+def read_run(path: str) -> Run:
+    """Every scalar and the hyperparameter table of one run folder (resumed runs: TensorBoard's purge applies)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    env_id, exp_name, seed, timestamp = parse_run_name(os.path.basename(path))
+    acc = EventAccumulator(path, size_guidance={"scalars": 0, "tensors": 0})
+    acc.Reload()
+    tags = acc.Tags()
+    run = Run(path, env_id, exp_name, seed, timestamp)
+    for tag in tags.get("scalars", []):
+        events = acc.Scalars(tag)
+        run.scalars[tag] = Series(np.array([e.step for e in events], dtype=np.int64),
+                                  np.array([e.value for e in events], dtype=np.float64),
+                                  np.array([e.wall_time for e in events], dtype=np.float64))
+    if HPARAMS_TAG in tags.get("tensors", []):
+        text = acc.Tensors(HPARAMS_TAG)[0].tensor_proto.string_val[0].decode()
+        run.hparams = parse_hparams(text)
+    # the folder name decides the panel and the curve: it must agree with what the run logged
+    for key, from_name in (("env_id", env_id), ("exp_name", exp_name), ("seed", str(seed))):
+        logged = run.hparams.get(key)
+        if logged is not None and logged != from_name:
+            fail(f"run folder {path} is named for {key}={from_name} but the run logged {key}={logged}; "
+                 "a renamed or copied folder would mix runs of different settings into one panel: rename it back")
+    return run
+
+
+# ----------------------------------------------------------------------------------------------
+# Selecting and grouping runs
+# ----------------------------------------------------------------------------------------------
+def parse_labels(labels: Sequence[str]) -> dict[str, str]:
+    """`EXP=LABEL` pairs on top of the default display names."""
+    mapping = dict(DEFAULT_LABELS)
+    for item in labels:
+        if "=" not in item:
+            fail(f"--labels takes EXP=LABEL pairs (got '{item}')")
+        exp, label = item.split("=", 1)
+        mapping[exp] = label
+    return mapping
+
+
+def describe(runs: Sequence[Run]) -> str:
+    """`Hopper-v4/ppo_baseline (2 seeds), ...` for error messages."""
+    counts: dict[str, int] = {}
+    for run in runs:
+        key = f"{run.env_id}/{run.exp_name}"
+        counts[key] = counts.get(key, 0) + 1
+    return short_list(f"{key} ({n} run{'s' if n > 1 else ''})" for key, n in sorted(counts.items()))
+
+
+def group_label(run: Run, labels: dict[str, str], split_by: Sequence[str]) -> str:
+    label = labels.get(run.exp_name, run.exp_name)
+    extra = [f"{key}={run.hparams[key]}" for key in split_by if key in run.hparams]
+    return f"{label} ({', '.join(extra)})" if extra else label
+
+
+@dataclass
+class Selection:
+    """The runs a figure draws, grouped by (env, experiment label), each group's runs sorted by seed."""
+
+    groups: dict[tuple[str, str], list[Run]]
+    envs: list[str]
+    labels: list[str]  # experiment labels in display order (their colours follow this order)
+
+    def color(self, label: str) -> str:
+        return OKABE_ITO[self.labels.index(label) % len(OKABE_ITO)]
+
+    def in_env(self, env: str) -> list[tuple[str, list[Run]]]:
+        return [(label, runs) for (e, label), runs in self.groups.items() if e == env]
+
+
+def select_runs(
+    roots: Sequence[str],
+    envs: Sequence[str] = (),
+    experiments: Sequence[str] = (),
+    split_by: Sequence[str] = (),
+    labels: Sequence[str] = (),
+    tags: Sequence[str] = (),
+) -> Selection:
+    """Read the runs of `experiments` on `envs` (empty: all found) that log every one of `tags`.
+
+    Experiments named explicitly must log the tags (or it is an error); otherwise runs that do not
+    log them are left out with a note (e.g. baseline runs in a fallback figure).
+    """
+    names = {exp for exp in experiments}
+    label_map = parse_labels(labels)
+    all_dirs = find_run_dirs(roots)
+    where = ", ".join(roots)
+    if not all_dirs:
+        fail(f"no run folders (named <env_id>__<exp_name>__<seed>__<timestamp>, holding TensorBoard event files) "
+             f"under {where}")
+    found = [parse_run_name(os.path.basename(d)) for d in all_dirs]
+    chosen = [d for d, (env, exp, _, _) in zip(all_dirs, found)
+              if (not envs or env in envs) and (not names or exp in names)]
+    if not chosen:
+        listed = describe([Run(d, env, exp, seed, ts) for d, (env, exp, seed, ts) in zip(all_dirs, found)])
+        wanted = f"experiment(s) {short_list(experiments) if experiments else '(any)'} on env(s) " \
+                 f"{short_list(envs) if envs else '(any)'}"
+        fail(f"no runs of {wanted} under {where} (found: {listed})")
+    runs = [read_run(d) for d in chosen]
+
+    for tag in tags:
+        missing = [r for r in runs if tag not in r.scalars]
+        if not missing:
+            continue
+        if len(missing) == len(runs):
+            logged = sorted({t for r in runs for t in r.scalars})
+            fail(f"no run logs '{tag}' (looked in {describe(runs)} under {where}; they log: {short_list(logged)})")
+        explicit = [r for r in missing if r.exp_name in names]
+        if explicit:
+            r = explicit[0]
+            fail(f"run {r.path} of experiment {r.exp_name} does not log '{tag}' "
+                 f"(it logs: {short_list(sorted(r.scalars))})")
+        note(f"left out {describe(missing)}: no '{tag}' logged")
+        runs = [r for r in runs if tag in r.scalars]
+
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for run in runs:
+        groups.setdefault((run.env_id, group_label(run, label_map, split_by)), []).append(run)
+    for key, members in groups.items():
+        groups[key] = drop_duplicate_seeds(sorted(members, key=lambda r: (r.seed, r.timestamp)))
+        warn_if_settings_differ(key, groups[key], split_by)
+
+    env_order = [e for e in envs if any(k[0] == e for k in groups)] or sorted({k[0] for k in groups})
+    exp_order = list(experiments) or sorted({r.exp_name for r in runs})
+    label_order = sorted({k[1] for k in groups},
+                         key=lambda lab: (min(exp_order.index(r.exp_name) for k, rs in groups.items()
+                                              if k[1] == lab for r in rs), lab))
+    ordered = {(e, lab): groups[(e, lab)] for e in env_order for lab in label_order if (e, lab) in groups}
+    return Selection(ordered, env_order, label_order)
+
+
+def drop_duplicate_seeds(runs: list[Run]) -> list[Run]:
+    """Two runs of the same seed (a relaunch) would count one seed twice: keep the longer (then newer) one."""
+    by_seed: dict[int, Run] = {}
+    for run in runs:
+        kept = by_seed.get(run.seed)
+        if kept is None or (run.last_step(), run.timestamp) > (kept.last_step(), kept.timestamp):
+            if kept is not None:
+                note(f"two runs of {run.env_id}/{run.exp_name} seed {run.seed}: using {run.name}, not {kept.name}")
+            by_seed[run.seed] = run
+        else:
+            note(f"two runs of {run.env_id}/{run.exp_name} seed {run.seed}: using {kept.name}, not {run.name}")
+    return [by_seed[s] for s in sorted(by_seed)]
+
+
+def warn_if_settings_differ(key: tuple[str, str], runs: list[Run], split_by: Sequence[str]) -> None:
+    keys = sorted({k for r in runs for k in r.hparams} - NOT_SETTINGS)
+    for name in keys:
+        values = sorted({r.hparams.get(name, "(unset)") for r in runs})
+        if len(values) > 1:
+            note(f"runs of {key[0]}/{key[1]} differ in {name} ({', '.join(values)}) and are averaged together; "
+                 f"give them different --exp-name or pass --split-by {name}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Statistics over seeds
+# ----------------------------------------------------------------------------------------------
+def stack_seeds(runs: Sequence[Run], tag: str) -> tuple[np.ndarray, np.ndarray]:
+    """Steps logged by every run and the values there: steps [T], values [runs, T].
+
+    Steps that only some runs reached (a run still going or killed) are left out, with a note.
+    """
+    per_run = [r.series(tag).by_step() for r in runs]
+    common = sorted(set.intersection(*(set(p) for p in per_run)))
+    for run, p in zip(runs, per_run):
+        extra = len(p) - len(common)
+        if extra:
+            note(f"{run.name}: {extra} step(s) of '{tag}' not logged by every seed of its group are left out "
+                 f"(the curve ends at step {common[-1] if common else 0})")
+    values = np.array([[p[s] for s in common] for p in per_run], dtype=np.float64).reshape(len(runs), len(common))
+    return np.array(common, dtype=np.int64), values
+
+
+def mean_sem(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard error (std with ddof=1 over sqrt(n)) over axis 0; the error is 0 for one seed."""
+    mean = values.mean(0)
+    if values.shape[0] < 2:
+        return mean, np.zeros_like(mean)
+    return mean, values.std(0, ddof=1) / math.sqrt(values.shape[0])
+
+
+def net_added_steps(run: Run) -> list[int]:
+    """Steps where `cascade/size` grew, i.e. where a base net was added (not the bottom net at step 0)."""
+    if "cascade/size" not in run.scalars:
+        return []
+    series = run.scalars["cascade/size"]
+    grew = np.flatnonzero(np.diff(series.values) > 0) + 1
+    return [int(series.steps[i]) for i in grew]
+
+
+def fallback_nets(runs: Sequence[Run], prefix: str = "cascade/fallback/net_") -> list[int]:
+    """The net indices i for which some run logs `<prefix>i`, sorted."""
+    return sorted({int(t[len(prefix):]) for r in runs for t in r.scalars if t.startswith(prefix)})
+
+
+def fmt(mean: float, sem: float | None, digits: int) -> str:
+    """`0.96 ± 0.01` (just `0.96` for one seed)."""
+    if mean is None or (isinstance(mean, float) and math.isnan(mean)):
+        return "–"
+    return f"{mean:.{digits}f}" if sem is None else f"{mean:.{digits}f} ± {sem:.{digits}f}"
+
+
+# ----------------------------------------------------------------------------------------------
+# Figures and tables
+# ----------------------------------------------------------------------------------------------
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (no display needed), with readable defaults."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.rcParams.update({
+        "font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "legend.fontsize": 9,
+        "axes.spines.top": False, "axes.spines.right": False, "axes.grid": True, "grid.alpha": 0.25,
+        "pdf.fonttype": 42, "savefig.dpi": 150,
+    })
+    return plt
+
+
+def format_steps(x: float, _pos: int | None = None) -> str:
+    """Tick labels for env steps: 0, 500k, 1M, 1.5M."""
+    if abs(x) >= 1e6:
+        return f"{x / 1e6:g}M"
+    if abs(x) >= 1e3:
+        return f"{x / 1e3:g}k"
+    return f"{x:g}"
+
+
+def panels(plt, count: int, columns: int = 3, width: float = 4.2, height: float = 3.2, sharex: bool = False):
+    """A figure with `count` panels in up to `columns` columns; returns (figure, flat list of the used axes)."""
+    columns = max(1, min(columns, count))
+    rows = math.ceil(count / columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(width * columns, height * rows + 0.6), squeeze=False,
+                             layout="constrained", sharex=sharex)
+    flat = list(axes.flat)
+    for ax in flat[count:]:
+        ax.set_visible(False)
+    return fig, flat[:count]
+
+
+def steps_axis(ax) -> None:
+    from matplotlib.ticker import FuncFormatter
+
+    ax.xaxis.set_major_formatter(FuncFormatter(format_steps))
+    ax.set_xlabel("environment steps")
+
+
+def figure_legend(fig, axes) -> None:
+    """One legend for the whole figure, below the panels, each label once."""
+    entries: dict[str, object] = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            entries.setdefault(label, handle)
+    if entries:
+        # as many columns as fit the figure's width (about 6 points per character plus the line sample)
+        width = fig.get_figwidth() * 72
+        ncol = max(1, min(len(entries), int(width // (6 * max(map(len, entries)) + 45))))
+        fig.legend(list(entries.values()), list(entries), loc="outside lower center", ncol=ncol, frameon=False)
+
+
+def save_figure(fig, out: str, stem: str) -> list[str]:
+    """Write `<out>/<stem>.png` and `.pdf`; returns their paths."""
+    os.makedirs(out, exist_ok=True)
+    paths = [os.path.join(out, f"{stem}.{ext}") for ext in ("png", "pdf")]
+    for path in paths:
+        fig.savefig(path)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return paths
+
+
+def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def write_text(out: str, name: str, text: str) -> str:
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, name)
+    with open(path, "w") as f:
+        f.write(text)
+    return path
+
+
+def write_csv(out: str, name: str, headers: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
+    """Full-precision numbers behind a figure or table (what the tests and further analysis read)."""
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, name)
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(headers)
+        writer.writerows([repr(float(c)) if isinstance(c, float) else c for c in row] for row in rows)
+    return path
+
+
+def report(paths: Sequence[str]) -> None:
+    for path in paths:
+        print(f"wrote {path}")
