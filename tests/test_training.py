@@ -173,3 +173,28 @@ def test_cascade_learns_inverted_pendulum(tmp_path):
     first, last = returns[0][1], returns[-1][1]
     assert returns[0][0] == 0
     assert last > 5 * first and last > 100, returns
+
+
+def test_evaluation_in_worker_process_matches_inline(tmp_path):
+    curves = {}
+    for in_worker in (True, False):
+        args = cpc.Args(env_id="Hopper-v4", n=2, k=512, eval_every=256, eval_episodes=3, eval_in_worker=in_worker,
+                        track_dir=str(tmp_path / str(in_worker)), **TINY)
+        scalars = read_scalars(cpc.train(args)["run_dir"])
+        curves[in_worker] = {tag: scalars[tag] for tag in scalars
+                             if tag.startswith(("eval/", "members/", "cascade/fallback_std"))}
+    assert [s for s, _ in curves[True]["eval/episodic_return"]] == [0, 256, 512, 768, 1024]
+    assert curves[True] == curves[False]
+
+
+def test_parallel_envs_keep_the_batch_size(tmp_path):
+    args = cpc.Args(env_id="Hopper-v4", n=1, k=2048, num_envs=2, num_minibatches=4, update_epochs=1,
+                    eval_every=0, track_dir=str(tmp_path))
+    result = cpc.train(args)
+    assert args.num_steps == 1024 and result["global_step"] == 2048
+    envs = cpc.make_vector_env(args)
+    assert isinstance(envs, gym.vector.AsyncVectorEnv)
+    envs.reset(seed=0)
+    states = envs.call("get_state")
+    assert len(states) == 2 and states[0]["sim"] is not None
+    envs.close()
