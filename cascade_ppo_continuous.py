@@ -270,9 +270,11 @@ def contributions(fallback: torch.Tensor) -> torch.Tensor:
     fallback: [n-1, B, 1] -> contributions [n, B, 1], summing to 1 over nets.
     """
     ones = fallback.new_ones((1, *fallback.shape[1:]))
+    if len(fallback) == 0:
+        return ones  # a single net carries the whole output
     # later[i] = prod_{j>i} l_j: a reverse cumulative product over the nets above net i
-    later = torch.cat([torch.cumprod(fallback.flip(0), 0).flip(0), ones])
-    return torch.cat([ones, 1.0 - fallback]) * later
+    later = torch.cat([fallback, ones]).flip(0).cumprod(0).flip(0)
+    return torch.cat([ones, torch.rsub(fallback, 1.0)]) * later  # rsub: 1 - l, minus Python's operator overhead
 
 
 class CascadeActor(nn.Module):
