@@ -10,6 +10,7 @@ settings disagree) stops with a one-line `error: ...` naming what was looked for
 from __future__ import annotations
 
 import csv
+import difflib
 import math
 import os
 import re
@@ -48,6 +49,14 @@ def fail(message: str) -> NoReturn:
 def note(message: str) -> None:
     """A one-line remark on stderr that does not stop the script."""
     print(f"note: {message}", file=sys.stderr)
+
+
+def nearest_first(name: str, names: Sequence[str]) -> list[str]:
+    """`names` with the ones most like `name` (difflib's close matches, then the same `prefix/`) first."""
+    close = difflib.get_close_matches(name, names, n=3, cutoff=0.6)
+    prefix = name.split("/")[0] + "/"
+    return close + [n for n in names if n.startswith(prefix) and n not in close] + \
+        [n for n in names if not n.startswith(prefix) and n not in close]
 
 
 def short_list(items: Iterable[str], limit: int = 12) -> str:
@@ -95,7 +104,7 @@ class Run:
 
     def series(self, tag: str) -> Series:
         if tag not in self.scalars:
-            fail(f"run {self.path} does not log '{tag}' (it logs: {short_list(sorted(self.scalars))})")
+            fail(f"run {self.path} does not log '{tag}' (it logs: {short_list(nearest_first(tag, sorted(self.scalars)))})")
         return self.scalars[tag]
 
     def last_step(self) -> int:
@@ -242,12 +251,13 @@ def select_runs(
             continue
         if len(missing) == len(runs):
             logged = sorted({t for r in runs for t in r.scalars})
-            fail(f"no run logs '{tag}' (looked in {describe(runs)} under {where}; they log: {short_list(logged)})")
+            fail(f"no run logs '{tag}' (looked in {describe(runs)} under {where}; they log: "
+                 f"{short_list(nearest_first(tag, logged))})")
         explicit = [r for r in missing if r.exp_name in names]
         if explicit:
             r = explicit[0]
             fail(f"run {r.path} of experiment {r.exp_name} does not log '{tag}' "
-                 f"(it logs: {short_list(sorted(r.scalars))})")
+                 f"(it logs: {short_list(nearest_first(tag, sorted(r.scalars)))})")
         note(f"left out {describe(missing)}: no '{tag}' logged")
         runs = [r for r in runs if tag in r.scalars]
 

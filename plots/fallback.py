@@ -111,8 +111,9 @@ def main(args: Args) -> list[str]:
     for ax, key in zip(axes, keys):
         runs = selection.groups[key]
         nets = [i for i in common.fallback_nets(runs, FALLBACK) if not args.nets or i in args.nets]
-        for net in nets:
-            curve(ax, runs, f"{FALLBACK}{net}", common.OKABE_ITO[(net - 2) % len(common.OKABE_ITO)], f"net {net}")
+        for net in nets:  # seeds of a run with fewer nets do not count for net i
+            curve(ax, [r for r in runs if f"{FALLBACK}{net}" in r.scalars], f"{FALLBACK}{net}",
+                  common.OKABE_ITO[(net - 2) % len(common.OKABE_ITO)], f"net {net}")
         if not nets:
             ax.text(0.5, 0.5, "no net with a fallback", ha="center", va="center", transform=ax.transAxes)
         net_markers(ax, runs)

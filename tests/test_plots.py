@@ -1,0 +1,265 @@
+"""plots/: figures and tables from tiny real runs, numbers checked against the logged scalars read independently."""
+
+import csv
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import cascade_ppo_continuous as cpc
+import ppo_baseline
+from helpers import ROOT, read_scalars
+from plots import analyze, common, fallback, final_performance, learning_curves, members
+
+TINY = dict(env_id="Hopper-v4", num_steps=256, num_minibatches=4, update_epochs=2, eval_every=512, eval_episodes=2,
+            quiet=True)
+SEEDS = (1, 2)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """2 seeds of Cascade (n=2, k=1024) and 2 seeds of PPO (2048 steps) on Hopper-v4, a few seconds each."""
+    track = str(tmp_path_factory.mktemp("runs"))
+    cascade, baseline, second_net = [], [], {}
+
+    def capture(state):
+        if state["iteration"] == 2:
+            second_net.update({k: v.detach().clone() for k, v in state["actor"].state_dict().items()})
+
+    for seed in SEEDS:
+        hook = capture if seed == SEEDS[0] else None
+        cascade.append(cpc.train(cpc.Args(seed=seed, n=2, k=1024, track_dir=track, **TINY), on_iteration_start=hook)
+                       ["run_dir"])
+        baseline.append(ppo_baseline.train(ppo_baseline.Args(seed=seed, total_timesteps=2048, track_dir=track, **TINY))
+                        ["run_dir"])
+    return {"track": track, "cascade": cascade, "baseline": baseline, "second_net": second_net}
+
+
+def read_csv(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def assert_figures(paths, *stems):
+    for stem in stems:
+        png, pdf = [p for p in paths if os.path.splitext(p)[0].endswith(stem) and p.endswith((".png", ".pdf"))]
+        with open(png, "rb") as f:
+            assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+        with open(pdf, "rb") as f:
+            assert f.read(5) == b"%PDF-"
+        assert os.path.getsize(png) > 5000 and os.path.getsize(pdf) > 2000
+
+
+def last_values(run_dirs, tag):
+    return [read_scalars(d)[tag][-1][1] for d in run_dirs]
+
+
+def test_learning_curves_match_logged_returns(runs, tmp_path):
+    paths = learning_curves.main(learning_curves.Args(runs=(runs["track"],), out=str(tmp_path)))
+    assert_figures(paths, "learning_curves")
+    rows = read_csv(tmp_path / "learning_curves.csv")
+    for label, dirs in (("Cascade", runs["cascade"]), ("PPO", runs["baseline"])):
+        curve = [r for r in rows if r["experiment"] == label and r["env"] == "Hopper-v4"]
+        assert [int(r["step"]) for r in curve] == [0, 512, 1024, 1536, 2048]
+        values = np.array(last_values(dirs, "eval/episodic_return"))
+        assert float(curve[-1]["mean"]) == pytest.approx(values.mean(), rel=1e-6)
+        assert float(curve[-1]["sem"]) == pytest.approx(values.std(ddof=1) / np.sqrt(2), rel=1e-6)
+        assert curve[-1]["seeds"] == "2"
+    assert f"{np.mean(last_values(runs['cascade'], 'eval/episodic_return')):.1f}" in \
+        (tmp_path / "learning_curves.md").read_text()
+    # the base net added at k=1024 is read from cascade/size
+    assert common.net_added_steps(common.read_run(runs["cascade"][0])) == [1024]
+
+
+def test_one_seed_works(runs, tmp_path):
+    one = tmp_path / "one"
+    shutil.copytree(runs["cascade"][0], one / os.path.basename(runs["cascade"][0]))
+    paths = learning_curves.main(learning_curves.Args(runs=(str(one),), out=str(tmp_path / "out")))
+    assert_figures(paths, "learning_curves")
+    last = read_csv(tmp_path / "out" / "learning_curves.csv")[-1]
+    assert (last["seeds"], float(last["sem"])) == ("1", 0.0)
+    assert float(last["mean"]) == pytest.approx(last_values(runs["cascade"][:1], "eval/episodic_return")[0])
+
+
+def test_robust_statistics():
+    assert final_performance.iqm(np.arange(1.0, 9.0)) == pytest.approx(4.5)  # mean of 3, 4, 5, 6
+    assert final_performance.iqm(np.array([0.0, 1.0, 2.0, 100.0])) == pytest.approx(1.5)  # the outlier is cut
+    assert final_performance.iqm(np.array([3.0, 5.0])) == pytest.approx(4.0)  # < 4 seeds: the mean
+    x, y = np.array([1.0, 2.0, 3.0]), np.array([2.0, 0.0])
+    # pairs: (1,2)<, (1,0)>, (2,2)=, (2,0)>, (3,2)>, (3,0)> -> (4 + 0.5) / 6
+    assert final_performance.probability_of_improvement(x, y) == pytest.approx(4.5 / 6)
+    rng = np.random.default_rng(0)
+    data = [rng.normal(size=10), rng.normal(size=10) + 5]
+    boot = final_performance.stratified_bootstrap(
+        data, lambda rs: np.concatenate(rs, axis=1).mean(1), 4000, np.random.default_rng(1))
+    # each replicate keeps 10 runs from each stratum: the bootstrap mean centers on the data's mean
+    assert boot.shape == (4000,) and boot.mean() == pytest.approx(np.concatenate(data).mean(), abs=0.05)
+    low, high = final_performance.percentile_ci(boot, 0.95)
+    assert low < np.concatenate(data).mean() < high
+    constant = final_performance.stratified_bootstrap([np.full(5, 2.0)], lambda rs: rs[0].mean(1), 100,
+                                                      np.random.default_rng(0))
+    assert final_performance.percentile_ci(constant, 0.95) == (2.0, 2.0)
+
+
+def test_final_performance_matches_logged_returns(runs, tmp_path):
+    paths = final_performance.main(final_performance.Args(runs=(runs["track"],), out=str(tmp_path), reps=500))
+    assert_figures(paths, "final_performance", "final_performance_improvement")
+    rows = {r["experiment"]: r for r in read_csv(tmp_path / "final_performance.csv")}
+    cascade = np.array(last_values(runs["cascade"], "eval/episodic_return"))
+    ppo = np.array(last_values(runs["baseline"], "eval/episodic_return"))
+    assert float(rows["Cascade"]["iqm"]) == pytest.approx(cascade.mean(), rel=1e-6)  # 2 seeds: IQM = mean
+    assert float(rows["PPO"]["mean"]) == pytest.approx(ppo.mean(), rel=1e-6)
+    low, high = float(rows["Cascade"]["iqm_ci_low"]), float(rows["Cascade"]["iqm_ci_high"])
+    assert cascade.min() - 1e-6 <= low <= high <= cascade.max() + 1e-6
+    expected = np.mean([(c > p) + 0.5 * (c == p) for c in cascade for p in ppo])
+    assert float(rows["Cascade"]["p_improvement"]) == pytest.approx(expected)
+    assert "P(better than PPO)" in (tmp_path / "final_performance.md").read_text()
+
+
+def test_fallback_figures_and_tables_match_logged_fallbacks(runs, tmp_path):
+    paths = fallback.main(fallback.Args(runs=(runs["track"],), out=str(tmp_path)))
+    assert_figures(paths, "fallback_product", "fallback_per_net")
+    rows = read_csv(tmp_path / "fallback_tables.csv")
+    value = {(r["quantity"], r["net"]): float(r["mean"]) for r in rows}
+    assert {r["experiment"] for r in rows} == {"Cascade"}  # the PPO runs log no fallbacks and are left out
+    lam = np.mean(last_values(runs["cascade"], "cascade/fallback/net_2"))
+    spread = np.mean(last_values(runs["cascade"], "cascade/fallback_std/net_2"))
+    product = np.mean(last_values(runs["cascade"], "cascade/fallback_product"))
+    assert value[("fallback", "2")] == pytest.approx(lam, rel=1e-6)
+    assert value[("fallback_std", "2")] == pytest.approx(spread, rel=1e-6)
+    assert value[("fallback_product", "")] == pytest.approx(product, rel=1e-6)
+    tables = (tmp_path / "fallback_tables.md").read_text()
+    assert "Table 1" in tables and "Table 3" in tables and "| λ_2 |" in tables and f"{lam:.2f} ± " in tables
+
+
+def test_member_returns_match_logged_returns(runs, tmp_path):
+    paths = members.main(members.Args(runs=(runs["track"],), out=str(tmp_path)))
+    assert_figures(paths, "members")
+    rows = read_csv(tmp_path / "members.csv")
+    assert [(r["iteration"], r["step"]) for r in rows] == [("1", "1024"), ("2", "2048")]
+    logged = [read_scalars(d) for d in runs["cascade"]]
+    for row in rows:
+        step = int(row["step"])
+        full = np.mean([dict(s["eval/episodic_return"])[step] for s in logged])
+        bottom = np.mean([dict(s["members/return/net_1"])[step] for s in logged])
+        assert float(row["full_stack"]) == pytest.approx(full, rel=1e-6)
+        assert float(row["net_1"]) == pytest.approx(bottom, rel=1e-6)
+    assert rows[0]["net_2"] == "" and float(rows[1]["net_2"]) == pytest.approx(
+        np.mean([dict(s["members/return/net_2"])[2048] for s in logged]), rel=1e-6)
+
+
+def test_fallback_course_follows_the_saved_policy(runs, tmp_path):
+    run_dir = runs["cascade"][0]
+    paths = analyze.fallback_course(analyze.FallbackCourse(checkpoint=run_dir, out=str(tmp_path), seed=3))
+    assert_figures(paths, "fallback_course")
+    rows = read_csv(tmp_path / "fallback_course.csv")
+    assert len(rows) >= 1 and all(0.0 < float(r["lambda_2"]) < 1.0 for r in rows)
+    # first step, recomputed by hand: the reset observation, normalized with the saved statistics
+    checkpoint = cpc.load_checkpoint(run_dir)
+    actor = cpc.actor_from_checkpoint(checkpoint)
+    env = analyze.make_env("Hopper-v4")
+    obs, _ = env.reset(seed=3)
+    with torch.no_grad():
+        _, _, fallback_first, _ = actor(torch.as_tensor(cpc.normalize_obs(obs[None], checkpoint["obs_stats"])))
+    assert float(rows[0]["lambda_2"]) == pytest.approx(float(fallback_first[0, 0]), rel=1e-6)
+
+
+def test_plasticity_small(runs, tmp_path):
+    run_dir = runs["cascade"][0]
+    # the stack "after" is exactly the one training built at the start of iteration 2
+    checkpoint = cpc.load_checkpoint(os.path.join(run_dir, "iteration_1.pt"))
+    after = analyze.stack_after_adding(checkpoint).state_dict()
+    assert after.keys() == runs["second_net"].keys()
+    for key, value in runs["second_net"].items():
+        torch.testing.assert_close(after[key], value, rtol=0, atol=0)
+
+    result = analyze.plasticity(analyze.Plasticity(checkpoint=run_dir, out=str(tmp_path), updates=30, samples=2,
+                                                   observations=40))
+    assert (result["before"]["nets"], result["after"]["nets"]) == (1, 2)
+    for which in ("before", "after"):
+        r = result[which]
+        assert np.all(np.isfinite(r["plasticity"])) and np.all((r["b"] > 0) & (r["b"] <= 1))
+        assert np.all(r["final_loss"] < r["initial_loss"])  # the fit makes progress
+        np.testing.assert_allclose(r["plasticity"], r["b"] - r["final_loss"])
+    table = read_csv(tmp_path / "plasticity.csv")
+    assert len(table) == 4 and float(table[0]["plasticity"]) == pytest.approx(result["before"]["plasticity"][0])
+
+
+def test_table2_matches_logged_parameters_and_wall_time(runs, tmp_path):
+    analyze.table2(analyze.Table2(runs=(runs["track"],), out=str(tmp_path)))
+    rows = {r["experiment"]: r for r in read_csv(tmp_path / "table2.csv")}
+    assert float(rows["PPO"]["parameters"]) == 10119  # Table 2 of the paper, Hopper PPO
+    assert float(rows["Cascade"]["parameters"]) == read_scalars(runs["cascade"][0])["cascade/parameters"][-1][1]
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    seconds = []
+    for d in runs["baseline"]:
+        acc = EventAccumulator(d, size_guidance={"scalars": 0})
+        acc.Reload()
+        times = [e.wall_time for tag in acc.Tags()["scalars"] for e in acc.Scalars(tag)]
+        seconds.append(max(times) - min(times))
+    assert float(rows["PPO"]["seconds_mean"]) == pytest.approx(np.mean(seconds), rel=1e-6)
+    assert "Parameters Cascade" in (tmp_path / "table2.md").read_text()
+
+
+# ----------------------------------------------------------------------------------------------
+# Bad input: one clear line naming what was looked for and what was found
+# ----------------------------------------------------------------------------------------------
+def error_of(call):
+    with pytest.raises(SystemExit) as info:
+        call()
+    message = str(info.value)
+    assert message.startswith("error: ") and "\n" not in message
+    return message
+
+
+def test_no_matching_runs(runs, tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    message = error_of(lambda: learning_curves.main(learning_curves.Args(runs=(str(empty),), out=str(tmp_path))))
+    assert "no run folders" in message and str(empty) in message
+    message = error_of(lambda: learning_curves.main(learning_curves.Args(
+        runs=(runs["track"],), experiments=("cascade_freeze",), out=str(tmp_path))))
+    assert "cascade_freeze" in message and "Hopper-v4/cascade_ppo_continuous (2 runs)" in message
+    assert "Hopper-v4/ppo_baseline (2 runs)" in message
+    message = error_of(lambda: learning_curves.main(learning_curves.Args(runs=(str(tmp_path / "nope"),))))
+    assert "does not exist" in message
+
+
+def test_runs_of_another_env_in_a_panel(runs, tmp_path):
+    mixed = tmp_path / "mixed"
+    shutil.copytree(runs["track"], mixed)
+    # a Hopper run copied under a Walker2d name would be drawn in the Walker2d panel
+    name = os.path.basename(runs["cascade"][0]).replace("Hopper-v4", "Walker2d-v4")
+    shutil.copytree(runs["cascade"][0], mixed / name)
+    message = error_of(lambda: learning_curves.main(learning_curves.Args(runs=(str(mixed),), out=str(tmp_path))))
+    assert "env_id=Walker2d-v4" in message and "env_id=Hopper-v4" in message and name in message
+
+
+def test_missing_scalar(runs, tmp_path):
+    message = error_of(lambda: learning_curves.main(learning_curves.Args(
+        runs=(runs["track"],), scalar="eval/success_rate", out=str(tmp_path))))
+    assert "'eval/success_rate'" in message and "eval/episodic_return" in message and "ppo_baseline" in message
+    message = error_of(lambda: fallback.main(fallback.Args(runs=(runs["track"],), experiments=("ppo_baseline",),
+                                                           out=str(tmp_path))))
+    assert "'cascade/fallback_product'" in message and "charts/parameters" in message
+    message = error_of(lambda: analyze.fallback_course(analyze.FallbackCourse(
+        checkpoint=os.path.join(runs["cascade"][0], "iteration_1.pt"), out=str(tmp_path))))
+    assert "1 base net" in message
+
+
+def test_command_line(runs, tmp_path):
+    """As a user runs it, from another folder: PNG/PDF written; bad input exits non-zero with one line."""
+    script = os.path.join(ROOT, "plots", "learning_curves.py")
+    ok = subprocess.run([sys.executable, script, "--runs", runs["track"], "--out", str(tmp_path / "cli")],
+                        capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    assert (tmp_path / "cli" / "learning_curves.png").stat().st_size > 5000
+    bad = subprocess.run([sys.executable, script, "--runs", runs["track"], "--envs", "Ant-v4"],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert bad.returncode != 0 and bad.stderr.strip().count("\n") == 0
+    assert bad.stderr.startswith("error: no runs of") and "Ant-v4" in bad.stderr and "Hopper-v4" in bad.stderr
