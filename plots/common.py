@@ -282,12 +282,15 @@ def drop_duplicate_seeds(runs: list[Run]) -> list[Run]:
     by_seed: dict[int, Run] = {}
     for run in runs:
         kept = by_seed.get(run.seed)
-        if kept is None or (run.last_step(), run.timestamp) > (kept.last_step(), kept.timestamp):
-            if kept is not None:
-                note(f"two runs of {run.env_id}/{run.exp_name} seed {run.seed}: using {run.name}, not {kept.name}")
+        if kept is None:
             by_seed[run.seed] = run
-        else:
-            note(f"two runs of {run.env_id}/{run.exp_name} seed {run.seed}: using {kept.name}, not {run.name}")
+            continue
+        if (run.last_step(), run.timestamp) > (kept.last_step(), kept.timestamp):
+            by_seed[run.seed], kept, run = run, run, kept  # keep the new one, drop the old
+        differ = sorted(k for k in set(kept.hparams) | set(run.hparams)
+                        if k not in NOT_SETTINGS and kept.hparams.get(k) != run.hparams.get(k))
+        why = f"; they differ in {', '.join(differ)}: give them different --exp-name" if differ else ""
+        note(f"two runs of {run.env_id}/{run.exp_name} seed {run.seed}: using {kept.name}, not {run.name}{why}")
     return [by_seed[s] for s in sorted(by_seed)]
 
 

@@ -85,6 +85,16 @@ def test_one_seed_works(runs, tmp_path):
     assert float(last["mean"]) == pytest.approx(last_values(runs["cascade"][:1], "eval/episodic_return")[0])
 
 
+def test_a_relaunched_seed_counts_once(runs, tmp_path, capsys):
+    track = tmp_path / "runs"
+    shutil.copytree(runs["track"], track)
+    relaunch = os.path.basename(runs["cascade"][0]).rsplit("__", 1)[0] + "__9999999999"
+    shutil.copytree(runs["cascade"][0], track / relaunch)
+    learning_curves.main(learning_curves.Args(runs=(str(track),), out=str(tmp_path / "out")))
+    assert {r["seeds"] for r in read_csv(tmp_path / "out" / "learning_curves.csv")} == {"2"}
+    assert f"using {relaunch}" in capsys.readouterr().err
+
+
 def test_robust_statistics():
     assert final_performance.iqm(np.arange(1.0, 9.0)) == pytest.approx(4.5)  # mean of 3, 4, 5, 6
     assert final_performance.iqm(np.array([0.0, 1.0, 2.0, 100.0])) == pytest.approx(1.5)  # the outlier is cut
