@@ -269,7 +269,10 @@ def select_runs(
         warn_if_settings_differ(key, groups[key], split_by)
 
     env_order = [e for e in envs if any(k[0] == e for k in groups)] or sorted({k[0] for k in groups})
-    exp_order = list(experiments) or sorted({r.exp_name for r in runs})
+    # default order (and so colours): Cascade, PPO, then the rest alphabetically
+    known = list(DEFAULT_LABELS)
+    exp_order = list(experiments) or sorted({r.exp_name for r in runs},
+                                            key=lambda e: (known.index(e) if e in known else len(known), e))
     label_order = sorted({k[1] for k in groups},
                          key=lambda lab: (min(exp_order.index(r.exp_name) for k, rs in groups.items()
                                               if k[1] == lab for r in rs), lab))

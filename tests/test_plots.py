@@ -130,6 +130,46 @@ def test_final_performance_matches_logged_returns(runs, tmp_path):
     assert "P(better than PPO)" in (tmp_path / "final_performance.md").read_text()
 
 
+def write_synthetic_run(track, env, exp, seed, final):
+    """A run folder with the logs a training script writes, evaluation returns rising linearly to `final`."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(os.path.join(track, f"{env}__{exp}__{seed}__{1700000000 + seed}"))
+    writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n|exp_name|{exp}|\n|seed|{seed}|\n|env_id|{env}|")
+    for step in range(0, 50_001, 10_000):
+        writer.add_scalar("eval/episodic_return", final * step / 50_000, step)
+    writer.close()
+
+
+def test_final_performance_over_several_envs_and_ten_seeds(tmp_path):
+    track = str(tmp_path / "runs")
+    finals = {}
+    for env, scale in (("Hopper-v4", 1000.0), ("Walker2d-v4", 3000.0)):
+        for exp, shift in (("cascade_ppo_continuous", 0.2), ("ppo_baseline", 0.0)):
+            finals[(env, exp)] = scale * (1 + shift + 0.1 * np.sin(np.arange(1, 11)))
+            for seed, final in enumerate(finals[(env, exp)], start=1):
+                write_synthetic_run(track, env, exp, seed, final)
+    paths = final_performance.main(final_performance.Args(runs=(track,), out=str(tmp_path), reps=300))
+    assert_figures(paths, "final_performance", "final_performance_improvement")
+    rows = {(r["env"], r["experiment"]): r for r in read_csv(tmp_path / "final_performance.csv")}
+    pooled = ("all envs", "Cascade")
+    for env in ("Hopper-v4", "Walker2d-v4"):
+        scores = np.sort(finals[(env, "cascade_ppo_continuous")])
+        assert float(rows[(env, "Cascade")]["iqm"]) == pytest.approx(scores[2:8].mean())  # 10 seeds: drop 2 + 2
+        poi = np.mean([(c > p) + 0.5 * (c == p) for c in finals[(env, "cascade_ppo_continuous")]
+                       for p in finals[(env, "ppo_baseline")]])
+        assert float(rows[(env, "Cascade")]["p_improvement"]) == pytest.approx(poi)
+    assert float(rows[pooled]["p_improvement"]) == pytest.approx(
+        np.mean([float(rows[(e, "Cascade")]["p_improvement"]) for e in ("Hopper-v4", "Walker2d-v4")]))
+    normalized = np.concatenate([finals[(e, "cascade_ppo_continuous")] / finals[(e, "ppo_baseline")].mean()
+                                 for e in ("Hopper-v4", "Walker2d-v4")])
+    assert float(rows[pooled]["iqm"]) == pytest.approx(final_performance.iqm(normalized))
+    assert float(rows[pooled]["iqm_ci_low"]) <= float(rows[pooled]["iqm"]) <= float(rows[pooled]["iqm_ci_high"])
+    paths = learning_curves.main(learning_curves.Args(runs=(track,), out=str(tmp_path), name="two_envs"))
+    curves = read_csv(tmp_path / "two_envs.csv")
+    assert {(r["env"], r["seeds"]) for r in curves} == {("Hopper-v4", "10"), ("Walker2d-v4", "10")}
+
+
 def test_fallback_figures_and_tables_match_logged_fallbacks(runs, tmp_path):
     paths = fallback.main(fallback.Args(runs=(runs["track"],), out=str(tmp_path)))
     assert_figures(paths, "fallback_product", "fallback_per_net")
