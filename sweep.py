@@ -1,0 +1,398 @@
+"""Experiment grids: the paper's experiments as one command, on this machine or on a Ray cluster.
+
+A sweep expands presets and/or command templates over env ids and seeds into runs, and executes
+each run as a subprocess of one of our scripts (`--env-id`, `--seed`, `--exp-name`, `--track-dir`
+added), with its log in `<sweep-dir>/logs/`. A run that exits 0 gets a completion marker in
+`<sweep-dir>/done/` (written last); re-running the same sweep skips marked runs and restarts the
+others, resuming from their checkpoint when one exists. Failures are reported at the end with the
+path of their log; they do not stop the other runs.
+
+    python sweep.py --preset standard --envs Hopper-v4 --seeds 1 2 --scale 0.01
+    python sweep.py --preset standard --envs Ant-v4 Walker2d-v4 --seeds 1 2 3 --backend ray --ray-address auto
+    python sweep.py --command "cascade_ppo_continuous.py --n 3 --k 500000" --envs Hopper-v4 --seeds 1 2 --dry-run
+    python plots/curves.py --runs sweeps/standard/runs      # then plot (see README)
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+import os
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Literal
+
+import tyro
+
+ROOT = os.path.dirname(os.path.abspath(__file__))
+
+
+@dataclass
+class Args:
+    preset: list[str] = field(default_factory=list)
+    """named experiments of the paper to run (see --list-presets), e.g. `standard frozen`"""
+    command: list[str] = field(default_factory=list)
+    """command templates, each one quoted string: a script and its flags (e.g. "cascade_ppo_continuous.py --n 3")"""
+    envs: list[str] = field(default_factory=lambda: ["Hopper-v4"])
+    """env ids; every run of the grid is made for each"""
+    seeds: list[str] = field(default_factory=lambda: ["1"])
+    """seeds (integers); every run of the grid is made for each"""
+    scale: float = 1.0
+    """multiply every step budget (--k, --total-timesteps) by this, e.g. 0.01 for a quick check"""
+    sweep_dir: str | None = None
+    """folder for runs/, logs/ and done/ markers (default: sweeps/<presets or 'custom'>); on a cluster, a shared folder"""
+    backend: Literal["local", "ray"] = "local"
+    """local: a pool of worker processes on this machine; ray: Ray tasks on a cluster"""
+    workers: int = max(os.cpu_count() or 1, 1)
+    """local backend: runs at a time (default: the number of cores)"""
+    ray_address: str = "auto"
+    """ray backend: `auto` (the cluster this machine belongs to) or host:port of the head node"""
+    cpus_per_run: float = 1.0
+    """ray backend: CPUs reserved for each run"""
+    python: str = sys.executable
+    """python interpreter the runs use (on a cluster, one that exists on every node)"""
+    dry_run: bool = False
+    """print the commands and exit"""
+    list_presets: bool = False
+    """print the presets and exit"""
+    status_every: float = 30.0
+    """seconds between progress lines"""
+
+
+# ----------------------------------------------------------------------------------------------
+# The paper's experiments (SPEC §4, §5, §7, §8). Each entry: label, script, flags.
+# Budget flags (--k, --total-timesteps) are scaled by --scale.
+# ----------------------------------------------------------------------------------------------
+CASCADE = "cascade_ppo_continuous.py"
+PPO = "ppo_baseline.py"
+PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
+    "standard": ("Fig. 2, 9: standard Cascade vs PPO (6M steps)", [
+        ("cascade", CASCADE, "--n 6 --k 1000000"),
+        ("ppo", PPO, "--total-timesteps 6000000"),
+    ]),
+    "baselines": ("Fig. 3, 9: PPO over 2M..6M steps, and one 16-wide net with a cyclic LR", [
+        *[(f"ppo_{m}M", PPO, f"--total-timesteps {m}000000") for m in range(2, 7)],
+        ("ppo_h16_cyclic", PPO, "--total-timesteps 6000000 --hidden-size 16 --lr-schedule cyclic --cycle-steps 1000000"),
+    ]),
+    "frozen": ("Fig. 4, 13: only the newest net trains, with and without normalization", [
+        ("cascade", CASCADE, "--n 6 --k 1000000"),
+        ("cascade_frozen", CASCADE, "--n 6 --k 1000000 --freeze-previous"),
+        ("cascade_nonorm", CASCADE, "--n 6 --k 1000000 --no-normalize"),
+        ("cascade_frozen_nonorm", CASCADE, "--n 6 --k 1000000 --freeze-previous --no-normalize"),
+    ]),
+    "start-full": ("Fig. 5: the full 6-net stack from the start", [
+        ("cascade", CASCADE, "--n 6 --k 1000000"),
+        ("cascade_start_full", CASCADE, "--n 6 --k 1000000 --start-full"),
+    ]),
+    "tiny": ("Fig. 8: 16 tiny base nets (one hidden layer of size 1)", [
+        ("cascade_tiny_k500k", CASCADE, "--n 16 --k 500000 --hidden-size 1 --num-layers 1"),
+        ("cascade_tiny_k1M", CASCADE, "--n 16 --k 1000000 --hidden-size 1 --num-layers 1"),
+    ]),
+    "k-sweep": ("Fig. 10: n = 2..8 nets within the same 6M steps", [
+        (f"cascade_n{n}", CASCADE, f"--n {n} --k {6_000_000 // n}") for n in range(2, 9)
+    ]),
+    "fallback-init": ("Fig. 11: initial fallback 0.05, 0.5, 0.9", [
+        (f"cascade_fallback{f}", CASCADE, f"--n 6 --k 1000000 --fallback-init {f}") for f in ("0.05", "0.5", "0.9")
+    ]),
+    "global-lr": ("Fig. 12: one LR decay over the whole run instead of cyclic", [
+        ("cascade", CASCADE, "--n 6 --k 1000000"),
+        ("cascade_global_lr", CASCADE, "--n 6 --k 1000000 --lr-schedule global"),
+    ]),
+    "discrete": ("Fig. 16: discrete Cascade vs discrete PPO on discretized envs (10M steps)", [
+        ("cascade_discrete", "cascade_ppo_discrete.py", "--n 10 --k 1000000"),
+        ("ppo_discrete", "ppo_baseline_discrete.py", "--total-timesteps 10000000"),
+    ]),
+    "sac-ddpg": ("Fig. 14, 15: Cascade with SAC (2M) and DDPG (6M) vs their baselines", [
+        ("cascade_sac", "cascade_sac.py", "--n 4 --k 500000"),
+        ("sac", "cascade_sac.py", "--n 1 --k 2000000 --hidden-size 256"),
+        ("cascade_ddpg", "cascade_ddpg.py", "--n 6 --k 1000000"),
+        ("ddpg", "cascade_ddpg.py", "--n 1 --k 6000000 --hidden-size 256"),
+    ]),
+}
+BUDGET_FLAGS = ("--k", "--total-timesteps", "--cycle-steps")
+MIN_BUDGET = 2048  # one PPO rollout: a scaled budget never goes below it
+
+
+def fail(message: str) -> None:
+    raise SystemExit(f"error: {message}")
+
+
+@dataclass
+class Run:
+    label: str
+    script: str
+    flags: list[str]
+    env_id: str
+    seed: int
+
+    @property
+    def run_id(self) -> str:
+        digest = hashlib.sha1(" ".join([self.script, *self.flags]).encode()).hexdigest()[:8]
+        return f"{self.env_id}__{self.label}__{self.seed}__{digest}"
+
+    def command(self, python: str, track_dir: str) -> list[str]:
+        """The fresh run's command, or a resume of its latest checkpoint when one exists."""
+        checkpoints = sorted(glob.glob(os.path.join(track_dir, f"{self.env_id}__{self.label}__{self.seed}__*",
+                                                    "checkpoint.pt")), key=os.path.getmtime)
+        script = os.path.join(ROOT, self.script)
+        if checkpoints:
+            return [python, script, "--resume", os.path.dirname(checkpoints[-1]), "--quiet"]
+        return [python, script, *self.flags, "--env-id", self.env_id, "--seed", str(self.seed),
+                "--exp-name", self.label, "--track-dir", track_dir, "--quiet"]
+
+
+def scale_flags(flags: list[str], scale: float) -> list[str]:
+    out = list(flags)
+    for i, flag in enumerate(out[:-1]):
+        if flag in BUDGET_FLAGS:
+            out[i + 1] = str(max(int(round(int(out[i + 1]) * scale)), MIN_BUDGET))
+    return out
+
+
+def expand(args: Args) -> list[Run]:
+    """The grid: every (template, env, seed)."""
+    try:
+        seeds = [int(s) for s in args.seeds]
+    except ValueError:
+        fail(f"--seeds must be integers (got {' '.join(args.seeds)})")
+    templates: list[tuple[str, str, list[str]]] = []
+    for name in args.preset:
+        if name not in PRESETS:
+            fail(f"unknown preset '{name}'; choose from {', '.join(PRESETS)}")
+        templates += [(label, script, shlex.split(flags)) for label, script, flags in PRESETS[name][1]]
+    for i, template in enumerate(args.command):
+        parts = shlex.split(template)
+        if not parts or not parts[0].endswith(".py") or not os.path.isfile(os.path.join(ROOT, parts[0])):
+            fail(f"unknown script in --command '{template}': expected one of our scripts, e.g. {CASCADE}")
+        flags, label = parts[1:], f"{parts[0][:-3]}_{i + 1}"
+        if "--exp-name" in flags:  # the sweep sets --exp-name itself: it becomes the template's label
+            at = flags.index("--exp-name")
+            label, flags = flags[at + 1], flags[:at] + flags[at + 2 :]
+        templates.append((label, parts[0], flags))
+    if not templates:
+        fail("nothing to run: give --preset NAME (see --list-presets) and/or --command TEMPLATE")
+    runs, seen = [], set()
+    for label, script, flags in templates:
+        for env_id in args.envs:
+            for seed in seeds:
+                run = Run(label, script, scale_flags(flags, args.scale), env_id, seed)
+                if run.run_id not in seen:  # presets share some runs (e.g. standard Cascade)
+                    seen.add(run.run_id)
+                    runs.append(run)
+    return runs
+
+
+# ----------------------------------------------------------------------------------------------
+# Executing a run: a subprocess, its log, and the completion marker written last
+# ----------------------------------------------------------------------------------------------
+def execute(command: list[str], log_path: str, marker_path: str, cwd: str) -> int:
+    os.makedirs(os.path.dirname(log_path), exist_ok=True)
+    with open(log_path, "a") as log:
+        log.write(f"$ {shlex.join(command)}\n")
+        log.flush()
+        proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=cwd, start_new_session=True)
+        RUNNING.add(proc)
+        try:
+            code = proc.wait()
+        finally:
+            RUNNING.discard(proc)
+    if code == 0:
+        os.makedirs(os.path.dirname(marker_path), exist_ok=True)
+        tmp = f"{marker_path}.tmp"
+        with open(tmp, "w") as f:
+            json.dump({"command": command, "finished": time.time()}, f)
+        os.replace(tmp, marker_path)
+    return code
+
+
+RUNNING: set[subprocess.Popen] = set()
+
+
+class Tracker:
+    """Counts and a periodic progress line: done / running / failed / pending, ETA."""
+
+    def __init__(self, total: int, parallel: int, every: float):
+        self.total, self.parallel, self.every = total, max(parallel, 1), every
+        self.done = self.running = 0
+        self.failed: list[tuple[Run, str, int]] = []
+        self.durations: list[float] = []
+        self.lock = threading.Lock()
+        self.last = 0.0
+
+    def started(self) -> None:
+        with self.lock:
+            self.running += 1
+
+    def finished(self, run: Run, code: int, log: str, seconds: float) -> None:
+        with self.lock:
+            self.running -= 1
+            if code == 0:
+                self.done += 1
+                self.durations.append(seconds)
+            else:
+                self.failed.append((run, log, code))
+            print(f"{'done  ' if code == 0 else 'FAILED'} {run.run_id} ({seconds:.0f}s)", flush=True)
+            self.report(force=True)
+
+    def report(self, force: bool = False) -> None:
+        if not force and time.time() - self.last < self.every:
+            return
+        self.last = time.time()
+        pending = self.total - self.done - len(self.failed) - self.running
+        eta = "?"
+        if self.durations:
+            left = (pending + self.running) * (sum(self.durations) / len(self.durations)) / self.parallel
+            eta = time.strftime("%H:%M:%S", time.gmtime(left))
+        print(f"[sweep] {self.done} done, {self.running} running, {len(self.failed)} failed, {pending} pending "
+              f"of {self.total} | ETA {eta}", flush=True)
+
+
+def run_local(todo: list[tuple[Run, list[str], str, str]], workers: int, tracker: Tracker) -> None:
+    def one(item):
+        run, command, log, marker = item
+        tracker.started()
+        start = time.time()
+        code = execute(command, log, marker, ROOT)
+        tracker.finished(run, code, log, time.time() - start)
+
+    pool = ThreadPoolExecutor(max_workers=workers)
+    futures = [pool.submit(one, item) for item in todo]
+    try:
+        while not all(f.done() for f in futures):
+            time.sleep(0.5)
+            tracker.report()
+        for f in futures:
+            f.result()
+    except KeyboardInterrupt:
+        for f in futures:
+            f.cancel()
+        stop_running()
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown()
+
+
+def stop_running() -> None:
+    for proc in list(RUNNING):
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+
+
+def check_ray_address(address: str, timeout: float = 5.0) -> None:
+    """A host:port that does not answer fails within `timeout` seconds, instead of hanging."""
+    if address in ("auto", "local"):
+        return
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        fail(f"--ray-address must be 'auto' or host:port (got '{address}')")
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout):
+            pass
+    except OSError as exc:
+        fail(f"no Ray head answers at {address} ({exc.strerror or exc}); start one with `ray start --head` "
+             "and pass the address it prints")
+
+
+def run_ray(todo: list[tuple[Run, list[str], str, str]], args: Args, tracker: Tracker) -> None:
+    try:
+        import ray
+    except ImportError:
+        fail("the ray backend needs ray: pip install -r requirements.txt")
+    check_ray_address(args.ray_address)
+    try:
+        ray.init(address=args.ray_address, log_to_driver=False, logging_level="ERROR")
+    except Exception as exc:
+        fail(f"cannot connect to Ray at {args.ray_address}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
+    remote = ray.remote(num_cpus=args.cpus_per_run, max_retries=0)(execute)
+    pending = {}
+    for run, command, log, marker in todo:
+        pending[remote.remote(command, log, marker, ROOT)] = (run, log, time.time())
+        tracker.started()
+    try:
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
+            for ref in ready:
+                run, log, start = pending.pop(ref)
+                try:
+                    code = ray.get(ref)
+                except Exception as exc:  # the task itself died (node lost, ...)
+                    with open(log, "a") as f:
+                        f.write(f"\nray task failed: {exc}\n")
+                    code = -1
+                tracker.finished(run, code, log, time.time() - start)
+            tracker.report()
+    except KeyboardInterrupt:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        ray.shutdown()
+
+
+def interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def main() -> None:
+    args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
+    # Ctrl-C and `kill` stop the sweep cleanly, even when started in the background (where SIGINT
+    # is inherited as ignored): running runs are terminated, finished ones keep their markers.
+    signal.signal(signal.SIGINT, interrupt)
+    signal.signal(signal.SIGTERM, interrupt)
+    if args.list_presets:
+        for name, (what, entries) in PRESETS.items():
+            print(f"{name:14s} {what} ({len(entries)} runs per env and seed)")
+        return
+    runs = expand(args)
+    sweep_dir = args.sweep_dir or os.path.join("sweeps", "_".join(args.preset) or "custom")
+    sweep_dir = os.path.abspath(sweep_dir)
+    track_dir = os.path.join(sweep_dir, "runs")
+    todo, skipped = [], 0
+    for run in runs:
+        marker = os.path.join(sweep_dir, "done", f"{run.run_id}.json")
+        if os.path.exists(marker):
+            skipped += 1
+            continue
+        todo.append((run, run.command(args.python, track_dir), os.path.join(sweep_dir, "logs", f"{run.run_id}.log"),
+                     marker))
+    if args.dry_run:
+        for _, command, _, _ in todo:
+            print(shlex.join(command))
+        print(f"# {len(todo)} runs to do, {skipped} already finished, in {sweep_dir}")
+        return
+    missing = sorted({run.script for run, *_ in todo if not os.path.isfile(os.path.join(ROOT, run.script))})
+    if missing:
+        fail(f"script(s) not found in {ROOT}: {', '.join(missing)}")
+    print(f"[sweep] {len(runs)} runs in {sweep_dir}: {skipped} already finished, {len(todo)} to run "
+          f"({args.backend} backend)", flush=True)
+    parallel = args.workers if args.backend == "local" else len(todo)
+    tracker = Tracker(len(todo), parallel, args.status_every)
+    try:
+        if args.backend == "local":
+            run_local(todo, args.workers, tracker)
+        else:
+            run_ray(todo, args, tracker)
+    except KeyboardInterrupt:
+        print(f"\n[sweep] interrupted: {tracker.done} done; unfinished runs restart (or resume) on the next call",
+              flush=True)
+        sys.exit(130)
+    print(f"[sweep] finished: {tracker.done + skipped} of {len(runs)} runs done ({skipped} skipped), "
+          f"{len(tracker.failed)} failed", flush=True)
+    for run, log, code in tracker.failed:
+        print(f"  FAILED {run.run_id} (exit {code}): see {log}")
+    if tracker.failed:
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

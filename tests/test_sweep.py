@@ -1,0 +1,117 @@
+"""sweep.py: grid expansion, a local sweep with a failure, skipping finished runs, a real Ray head."""
+
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+import pytest
+
+import sweep
+from helpers import ROOT, run_script
+
+TINY = ("cascade_ppo_continuous.py --n 1 --k 2048 --num-steps 512 --num-minibatches 4 --update-epochs 1 "
+        "--eval-every 0 --checkpoint-every 0")
+
+
+@pytest.mark.parametrize("preset", sorted(sweep.PRESETS))
+def test_every_preset_expands_to_the_papers_grid(preset):
+    runs = sweep.expand(sweep.Args(preset=[preset], envs=["Hopper-v4", "Walker2d-v4"], seeds=["1", "2", "3"],
+                                   scale=0.01))
+    entries = sweep.PRESETS[preset][1]
+    assert len(runs) == len(entries) * 2 * 3
+    assert {r.label for r in runs} == {label for label, _, _ in entries}
+    assert {(r.env_id, r.seed) for r in runs} == {(e, s) for e in ("Hopper-v4", "Walker2d-v4") for s in (1, 2, 3)}
+    for run in runs:
+        assert os.path.isfile(os.path.join(ROOT, run.script)) or run.script in ("cascade_sac.py", "cascade_ddpg.py")
+        command = run.command(sys.executable, "/tmp/none")
+        assert command[command.index("--exp-name") + 1] == run.label
+        for flag in sweep.BUDGET_FLAGS:
+            if flag in run.flags:  # budgets scaled by 0.01, never below one rollout
+                original = dict(zip(*[iter(dict((lab, f) for lab, _, f in entries)[run.label].split())] * 2))
+                assert int(run.flags[run.flags.index(flag) + 1]) == max(round(int(original[flag]) * 0.01), 2048)
+
+
+def test_paper_settings_in_presets():
+    k_sweep = sweep.expand(sweep.Args(preset=["k-sweep"]))
+    assert sorted(int(r.flags[1]) for r in k_sweep) == list(range(2, 9))
+    assert all(int(r.flags[1]) * int(r.flags[3]) <= 6_000_000 for r in k_sweep)
+    merged = sweep.expand(sweep.Args(preset=["standard", "frozen", "global-lr"]))
+    assert sum(r.label == "cascade" for r in merged) == 1  # shared runs are run once
+
+
+def test_unfinished_run_resumes_from_its_checkpoint(tmp_path):
+    run = sweep.Run("cascade", "cascade_ppo_continuous.py", ["--n", "2"], "Hopper-v4", 3)
+    assert "--resume" not in run.command("python", str(tmp_path))
+    folder = tmp_path / "Hopper-v4__cascade__3__1790000000"
+    folder.mkdir()
+    (folder / "checkpoint.pt").write_bytes(b"x")
+    command = run.command("python", str(tmp_path))
+    assert command[2:4] == ["--resume", str(folder)]
+
+
+def test_local_sweep_reports_failure_and_skips_finished_runs(tmp_path):
+    args = ["--command", TINY + " --exp-name good_a", TINY + " --fallback-init 0.9 --exp-name good_b",
+            TINY.replace("--n 1", "--n 0") + " --exp-name broken",
+            "--envs", "Hopper-v4", "--seeds", "1", "--workers", "2", "--sweep-dir", tmp_path]
+    first = run_script("sweep.py", *args)
+    assert first.returncode == 1, first.stdout + first.stderr
+    assert "2 of 3 runs done" in first.stdout and "1 failed" in first.stdout
+    assert "FAILED Hopper-v4__broken__1__" in first.stdout and str(tmp_path / "logs") in first.stdout
+    broken_logs = [f for f in os.listdir(tmp_path / "logs") if "broken" in f]
+    assert len(broken_logs) == 1
+    assert "--n must be at least 1" in open(tmp_path / "logs" / broken_logs[0]).read()
+    assert len(os.listdir(tmp_path / "done")) == 2
+    assert sorted(d.split("__")[1] for d in os.listdir(tmp_path / "runs")) == ["good_a", "good_b"]
+
+    again = run_script("sweep.py", *args)
+    assert again.returncode == 1
+    assert "2 already finished, 1 to run" in again.stdout
+    assert len(os.listdir(tmp_path / "runs")) == 2  # nothing was rerun
+
+
+def test_bad_input(tmp_path):
+    cases = [(["--preset", "nope"], "unknown preset 'nope'"),
+             (["--command", "train.py --n 2"], "unknown script"),
+             (["--preset", "standard", "--seeds", "1", "two"], "--seeds must be integers"),
+             ([], "nothing to run")]
+    for extra, message in cases:
+        proc = run_script("sweep.py", *extra, "--sweep-dir", tmp_path)
+        assert proc.returncode != 0 and message in proc.stderr, (extra, proc.stderr)
+    with socket.socket() as s:  # a port with nothing listening
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    start = time.time()
+    proc = run_script("sweep.py", "--command", TINY, "--backend", "ray", "--ray-address", f"127.0.0.1:{port}",
+                      "--sweep-dir", tmp_path)
+    assert proc.returncode != 0 and "no Ray head answers" in proc.stderr
+    assert time.time() - start < 30
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ray_sweep_on_a_real_local_head(tmp_path):
+    ray_bin = os.path.join(os.path.dirname(sys.executable), "ray")
+    port = free_port()
+    temp_dir = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must stay short
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    start = subprocess.run([ray_bin, "start", "--head", "--node-ip-address", "127.0.0.1", "--port", str(port),
+                            "--num-cpus", "2", "--include-dashboard=false", "--disable-usage-stats",
+                            "--object-store-memory", "100000000", "--temp-dir", temp_dir],
+                           capture_output=True, text=True, env=env, timeout=120)
+    assert start.returncode == 0, start.stderr[-2000:]
+    try:
+        proc = run_script("sweep.py", "--command", TINY, "--envs", "Hopper-v4", "--seeds", "1", "2",
+                          "--backend", "ray", "--ray-address", f"127.0.0.1:{port}", "--sweep-dir", tmp_path,
+                          env={"RAY_USAGE_STATS_ENABLED": "0"})
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+        assert "2 of 2 runs done" in proc.stdout
+        assert len(os.listdir(tmp_path / "done")) == 2 and len(os.listdir(tmp_path / "runs")) == 2
+    finally:
+        subprocess.run([ray_bin, "stop", "--force"], capture_output=True, env=env, timeout=120)
