@@ -3,6 +3,7 @@
 import math
 
 import gymnasium as gym
+import numpy as np
 import pytest
 import torch
 
@@ -178,3 +179,23 @@ def test_contributions_closed_form_small_case():
     expected = torch.tensor([lam2 * lam3, (1 - lam2) * lam3, 1 - lam3])
     torch.testing.assert_close(w, expected)
     assert math.isclose(w.sum().item(), 1.0, rel_tol=1e-6)
+
+
+def test_gae_matches_cleanrl_tensor_loop():
+    rng = np.random.default_rng(0)
+    T, E = 64, 3
+    rewards = rng.normal(size=(T, E)).astype(np.float32)
+    dones = (rng.random((T, E)) < 0.1).astype(np.float32)
+    values = rng.normal(size=(T, E)).astype(np.float32)
+    next_value, next_done = rng.normal(size=E).astype(np.float32), np.array([0, 1, 0], dtype=np.float32)
+    got = cpc.compute_gae(rewards, dones, values, next_value, next_done, 0.99, 0.95)
+    # CleanRL ppo_continuous_action.py, written out with tensors
+    r, d, v = map(torch.as_tensor, (rewards, dones, values))
+    advantages, last = torch.zeros_like(r), 0
+    for t in reversed(range(T)):
+        nonterminal = 1.0 - (torch.as_tensor(next_done) if t == T - 1 else d[t + 1])
+        nextvalues = torch.as_tensor(next_value) if t == T - 1 else v[t + 1]
+        delta = r[t] + 0.99 * nextvalues * nonterminal - v[t]
+        last = delta + 0.99 * 0.95 * nonterminal * last
+        advantages[t] = last
+    np.testing.assert_allclose(got, advantages.numpy(), rtol=1e-5, atol=1e-5)
