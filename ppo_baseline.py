@@ -100,6 +100,8 @@ class Args:
     """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
     eval_episodes: int = 10
     """episodes per evaluation (stochastic policy, frozen observation statistics)"""
+    eval_in_worker: bool = True
+    """run evaluations in a separate process beside training (same protocol and results, ~free on 2+ cores)"""
 
     # Checkpoints, resuming, evaluating a saved model
     checkpoint_every: int = 100_000
@@ -312,20 +314,20 @@ class Evaluator:
     def __init__(self, env_id: str, episodes: int, seed: int):
         self.envs = [gym.make(env_id) for _ in range(episodes)]
         self.seed = seed
-        self.calls = 0
-        self.generator = torch.Generator().manual_seed(seed)  # keeps training's RNG stream untouched
 
     @torch.inference_mode()
     def __call__(
         self,
         actor: Actor,
         stats: tuple[np.ndarray, np.ndarray] | None,
+        call: int = 0,
         deterministic: bool = False,
     ) -> np.ndarray:
-        """Returns each episode's undiscounted raw return."""
+        """Returns each episode's undiscounted raw return. The episodes' seeds and the action noise
+        depend only on (seed, call): evaluation never touches training's RNG."""
         episodes = len(self.envs)
-        base_seed = self.seed + 100_003 * (self.calls + 1)
-        self.calls += 1
+        base_seed = self.seed + 100_003 * (call + 1)
+        generator = torch.Generator().manual_seed(base_seed)
         obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
         low, high = self.envs[0].action_space.low, self.envs[0].action_space.high
         returns = np.zeros(episodes)
@@ -334,7 +336,7 @@ class Evaluator:
             x = torch.as_tensor(normalize_obs(obs[active], stats))
             mean, log_std = actor(x)
             action = mean if deterministic else mean + torch.exp(log_std) * torch.randn(
-                mean.shape, generator=self.generator
+                mean.shape, generator=generator
             )
             action = np.clip(action.numpy(), low, high)
             still_active = []
@@ -350,6 +352,66 @@ class Evaluator:
     def close(self) -> None:
         for env in self.envs:
             env.close()
+
+
+def evaluation_worker(conn, args_dict: dict, obs_dim: int, act_dim: int) -> None:
+    """Worker process: rebuilds the frozen policy of each request and evaluates it."""
+    torch.set_num_threads(1)
+    args = Args(**args_dict)
+    evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed)
+    actor = Actor(obs_dim, act_dim, args.hidden_size)
+    while (request := conn.recv()) is not None:
+        step, call, state, stats = request
+        actor.load_state_dict(state)
+        conn.send((step, evaluator(actor, stats, call)))
+
+
+class EvaluationRunner:
+    """Evaluations of frozen copies of the policy, in a worker process beside training or inline.
+
+    Each request carries the exact current policy and observation statistics; results come back
+    tagged with the step they belong to. Evaluation costs as many env steps as training under the
+    paper's protocol, so on 2+ cores a worker nearly hides it."""
+
+    def __init__(self, args: Args, obs_dim: int, act_dim: int, calls: int = 0):
+        self.calls, self.pending, self.done = calls, 0, []
+        self.conn = self.process = self.evaluator = None
+        if args.eval_in_worker:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")  # fork is unsafe with torch threads
+            self.conn, child = ctx.Pipe()
+            self.process = ctx.Process(target=evaluation_worker, args=(child, asdict(args), obs_dim, act_dim),
+                                       daemon=True)
+            self.process.start()
+        else:
+            self.evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed)
+
+    def submit(self, step: int, actor: Actor, stats) -> None:
+        if self.conn is not None:
+            state = {k: v.detach().cpu().clone() for k, v in actor.state_dict().items()}
+            self.conn.send((step, self.calls, state, stats))
+            self.pending += 1
+        else:
+            self.done.append((step, self.evaluator(actor, stats, self.calls)))
+        self.calls += 1
+
+    def results(self, wait: bool = False) -> list[tuple]:
+        """Finished evaluations (all outstanding ones with `wait`)."""
+        while self.pending and (wait or self.conn.poll()):
+            if not self.process.is_alive() and not self.conn.poll():
+                fail("the evaluation worker process died; rerun with --no-eval-in-worker to see why")
+            self.done.append(self.conn.recv())
+            self.pending -= 1
+        done, self.done = self.done, []
+        return done
+
+    def close(self) -> None:
+        if self.conn is not None:
+            self.conn.send(None)
+            self.process.join(timeout=10)
+        else:
+            self.evaluator.close()
 
 
 def make_render_env(env_id: str) -> gym.Env:
@@ -550,16 +612,23 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
     params = [*actor.parameters(), *critic.parameters()]
     optimizer = make_optimizer(params, args.learning_rate)
     n_params = count_parameters(actor, critic)
-    evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed) if args.eval_every else None
+    runner = None
+    if args.eval_every:
+        runner = EvaluationRunner(args, obs_dim, act_dim, calls=0 if checkpoint is None else checkpoint["eval_calls"])
     progress = Progress(total_updates * batch_size, args.quiet)
     progress.message(f"PPO: {n_params} parameters (actor + critic)")
 
-    def evaluate_and_log(step: int) -> None:
-        returns = evaluator(actor, obs_statistics(envs))
-        writer.add_scalar("eval/episodic_return", returns.mean(), step)
-        writer.add_scalar("eval/episodic_return_std", returns.std(), step)
-        progress.last_eval = float(returns.mean())
-        progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+    def log_evaluations(wait: bool = False) -> None:
+        for step, returns in runner.results(wait):
+            writer.add_scalar("eval/episodic_return", returns.mean(), step)
+            writer.add_scalar("eval/episodic_return_std", returns.std(), step)
+            progress.last_eval = float(returns.mean())
+            progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+
+    def evaluate(step: int) -> None:
+        """Freeze the current policy and observation statistics and evaluate them (SPEC §6)."""
+        runner.submit(step, actor, obs_statistics(envs))
+        log_evaluations()
 
     # Rollout storage, preallocated once (rewards and dones stay numpy: they come from the env as numpy)
     obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
@@ -575,7 +644,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
             "obs_stats": obs_statistics(envs), "env_states": envs.call("get_state"),
             "next_obs": next_obs.cpu(), "next_done": next_done.copy(), "rng": rng_states(),
-            "evaluator": None if evaluator is None else (evaluator.generator.get_state(), evaluator.calls),
+            "eval_calls": 0 if runner is None else runner.calls,
         }
 
     if checkpoint is None:
@@ -584,8 +653,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         next_obs_np, _ = envs.reset(seed=args.seed)
         next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
         next_done = np.zeros(args.num_envs, dtype=np.float32)
-        if evaluator is not None:
-            evaluate_and_log(0)
+        if runner is not None:
+            evaluate(0)
         writer.add_scalar("charts/parameters", n_params, global_step)
     else:
         global_step, start_update = checkpoint["global_step"], checkpoint["updates_done"] + 1
@@ -597,9 +666,6 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         actor.load_state_dict(checkpoint["actor"])
         critic.load_state_dict(checkpoint["critic"])
         optimizer.load_state_dict(checkpoint["optimizer"])
-        if evaluator is not None:
-            evaluator.generator.set_state(checkpoint["evaluator"][0])
-            evaluator.calls = checkpoint["evaluator"][1]
         set_rng_states(checkpoint["rng"])
         progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
     last_checkpoint_step = global_step
@@ -636,8 +702,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
                                        infos["final_info"]["episode"]["l"][finished]):
                     writer.add_scalar("charts/episodic_return", ret, global_step)
                     writer.add_scalar("charts/episodic_length", length, global_step)
-            if evaluator is not None and global_step % args.eval_every < args.num_envs:
-                evaluate_and_log(global_step)
+            if runner is not None and global_step % args.eval_every < args.num_envs:
+                evaluate(global_step)
 
         b_obs = obs.reshape(-1, obs_dim)
         with torch.no_grad():
@@ -724,15 +790,19 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             writer.close()
             fail(f"non-finite loss or parameters at global_step={global_step} (update {update}); "
                  f"the last good checkpoint {checkpoint_path} is intact")
-        if update == total_updates or (args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every):
+        checkpoint_now = update == total_updates or (
+            args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every)
+        if runner is not None:  # finished evaluations; before a checkpoint, all of them
+            log_evaluations(wait=checkpoint_now)
+        if checkpoint_now:
             save_checkpoint(checkpoint_path, make_checkpoint(update))
             last_checkpoint_step = global_step
 
-
-    if evaluator is not None and global_step % args.eval_every >= args.num_envs:
-        evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
-    if evaluator is not None:
-        evaluator.close()
+    if runner is not None:
+        if global_step % args.eval_every >= args.num_envs:
+            evaluate(global_step)  # the final policy, if the last step was not an eval step
+        log_evaluations(wait=True)
+        runner.close()
     final_stats = obs_statistics(envs)
     envs.close()
     writer.close()
@@ -784,7 +854,7 @@ def evaluate_saved(args: Args) -> dict:
     actor = actor_from_checkpoint(checkpoint)
     stats = checkpoint["obs_stats"]
     evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed)
-    returns = evaluator(actor, stats, args.deterministic)
+    returns = evaluator(actor, stats, 0, args.deterministic)
     mode = "deterministic" if args.deterministic else "stochastic"
     print(f"{saved.env_id}, PPO, step {checkpoint['global_step']}: "
           f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
