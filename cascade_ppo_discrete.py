@@ -57,7 +57,7 @@ class Args:
     env_id: str = "Hopper-v4"
     """the id of a gymnasium environment with a Discrete action space, or a Box one to discretize (e.g. Hopper-v4)"""
     discretize: Literal["auto", "on", "off"] = "auto"
-    """auto: discretize a Box action space into 2^A actions, use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
+    """auto: discretize a Box action space of A <= 10 dims into 2^A actions (Humanoid's 17 are refused), use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
     normalize: bool = True
     """observation and reward normalization (clip ±10) on discretized Box envs, as cascade_ppo_continuous.py (`--no-normalize`: Fig. 13); natively discrete envs (e.g. CartPole-v1) are never normalized, as in CleanRL ppo.py"""
 
@@ -114,6 +114,8 @@ class Args:
     """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
     eval_episodes: int = 10
     """episodes per evaluation (stochastic policy, frozen observation statistics)"""
+    quiet: bool = False
+    """print nothing while training (errors still go to stderr); sweep.py passes it"""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -478,6 +480,7 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
     """Runs Cascade; returns the final actor, critic and run folder. `on_iteration_start` sees the
     fresh state of each iteration (used by the tests)."""
     discretize, normalize = resolve(args)
+    say = (lambda *_: None) if args.quiet else print
     torch.set_num_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
@@ -491,9 +494,9 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
     updates_per_iteration = args.k // batch_size
     total_updates = args.n * updates_per_iteration
     if args.k % batch_size:
-        print(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
+        say(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
               f"{updates_per_iteration} updates = {updates_per_iteration * batch_size} steps")
-    print(f"{args.env_id}: {num_actions} discrete actions"
+    say(f"{args.env_id}: {num_actions} discrete actions"
           f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
 
     from torch.utils.tensorboard import SummaryWriter
@@ -518,7 +521,7 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
         writer.add_scalar("eval/episodic_return_std", returns.std(), step)
         for j, std in enumerate(fallback_std.mean(0)):
             writer.add_scalar(f"cascade/fallback_std/net_{j + 2}", std, step)
-        print(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+        say(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
 
     # Rollout storage, preallocated once
     obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
@@ -554,7 +557,7 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
         n_params = count_parameters(actor, critic)
         writer.add_scalar("cascade/size", size, global_step)
         writer.add_scalar("cascade/parameters", n_params, global_step)
-        print(f"iteration {iteration}/{args.n}: {size} base net(s), {n_params} parameters (actor + critic)")
+        say(f"iteration {iteration}/{args.n}: {size} base net(s), {n_params} parameters (actor + critic)")
         if on_iteration_start is not None:
             on_iteration_start(
                 {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}
@@ -690,7 +693,7 @@ def train(args: Args, on_iteration_start: Callable[[dict], None] | None = None) 
             writer.add_scalar("charts/SPS", sps, global_step)
             writer.add_scalar("cascade/size", size, global_step)
 
-        print(f"iteration {iteration} done: global_step={global_step}, SPS={int(global_step / (time.time() - start_time))}")
+        say(f"iteration {iteration} done: global_step={global_step}, SPS={int(global_step / (time.time() - start_time))}")
 
     if evaluator is not None and global_step % args.eval_every >= args.num_envs:
         evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step

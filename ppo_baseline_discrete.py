@@ -49,7 +49,7 @@ class Args:
     env_id: str = "Hopper-v4"
     """the id of a gymnasium environment with a Discrete action space, or a Box one to discretize (e.g. Hopper-v4)"""
     discretize: Literal["auto", "on", "off"] = "auto"
-    """auto: discretize a Box action space into 2^A actions, use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
+    """auto: discretize a Box action space of A <= 10 dims into 2^A actions (Humanoid's 17 are refused), use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
     normalize: bool = True
     """observation and reward normalization (clip ±10) on discretized Box envs, as ppo_baseline.py (`--no-normalize` turns it off); natively discrete envs (e.g. CartPole-v1) are never normalized, as in CleanRL ppo.py"""
 
@@ -98,6 +98,8 @@ class Args:
     """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
     eval_episodes: int = 10
     """episodes per evaluation (stochastic policy, frozen observation statistics)"""
+    quiet: bool = False
+    """print nothing while training (errors still go to stderr); sweep.py passes it"""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -346,6 +348,7 @@ def seed_everything(seed: int, torch_deterministic: bool) -> None:
 def train(args: Args) -> dict:
     """Runs PPO; returns the final actor, critic and run folder."""
     discretize, normalize = resolve(args)
+    say = (lambda *_: None) if args.quiet else print
     torch.set_num_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
@@ -359,9 +362,9 @@ def train(args: Args) -> dict:
     total_updates = args.total_timesteps // batch_size
     updates_per_cycle = max(args.cycle_steps // batch_size, 1)
     if args.total_timesteps % batch_size:
-        print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
+        say(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
               f"the run does {total_updates} updates = {total_updates * batch_size} steps")
-    print(f"{args.env_id}: {num_actions} discrete actions"
+    say(f"{args.env_id}: {num_actions} discrete actions"
           f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
 
     from torch.utils.tensorboard import SummaryWriter
@@ -378,14 +381,14 @@ def train(args: Args) -> dict:
     critic = make_critic(obs_dim).to(device)
     optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5)
     n_params = count_parameters(actor, critic)
-    print(f"PPO: {n_params} parameters (actor + critic)")
+    say(f"PPO: {n_params} parameters (actor + critic)")
     evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed, discretize) if args.eval_every else None
 
     def evaluate_and_log(step: int) -> None:
         returns = evaluator(actor, obs_statistics(envs))
         writer.add_scalar("eval/episodic_return", returns.mean(), step)
         writer.add_scalar("eval/episodic_return_std", returns.std(), step)
-        print(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+        say(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
 
     # Rollout storage, preallocated once
     obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
