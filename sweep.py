@@ -219,8 +219,9 @@ RUNNING: set[subprocess.Popen] = set()
 class Tracker:
     """Counts and a periodic progress line: done / running / failed / pending, ETA."""
 
-    def __init__(self, total: int, parallel: int, every: float):
+    def __init__(self, total: int, parallel: int, every: float, running_label: str = "running"):
         self.total, self.parallel, self.every = total, max(parallel, 1), every
+        self.running_label = running_label
         self.done = self.running = 0
         self.failed: list[tuple[Run, str, int]] = []
         self.durations: list[float] = []
@@ -251,7 +252,7 @@ class Tracker:
         if self.durations:
             left = (pending + self.running) * (sum(self.durations) / len(self.durations)) / self.parallel
             eta = time.strftime("%H:%M:%S", time.gmtime(left))
-        print(f"[sweep] {self.done} done, {self.running} running, {len(self.failed)} failed, {pending} pending "
+        print(f"[sweep] {self.done} done, {self.running} {self.running_label}, {len(self.failed)} failed, {pending} pending "
               f"of {self.total} | ETA {eta}", flush=True)
 
 
@@ -376,7 +377,9 @@ def main() -> None:
     print(f"[sweep] {len(runs)} runs in {sweep_dir}: {skipped} already finished, {len(todo)} to run "
           f"({args.backend} backend)", flush=True)
     parallel = args.workers if args.backend == "local" else len(todo)
-    tracker = Tracker(len(todo), parallel, args.status_every)
+    # Ray schedules the tasks itself: submitted ones are running or waiting for a free CPU
+    tracker = Tracker(len(todo), parallel, args.status_every,
+                      "running" if args.backend == "local" else "running or queued on the cluster")
     try:
         if args.backend == "local":
             run_local(todo, args.workers, tracker)
