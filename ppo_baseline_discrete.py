@@ -11,9 +11,13 @@ as they are. Extra flags shared with `ppo_baseline.py`: `--hidden-size`, `--lr-s
 
 from __future__ import annotations
 
+import collections
+import copy
 import math
 import os
+import pickle
 import random
+import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -25,6 +29,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 import tyro
+from gymnasium.wrappers.utils import RunningMeanStd
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -98,6 +103,16 @@ class Args:
     """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
     eval_episodes: int = 10
     """episodes per evaluation (stochastic policy, frozen observation statistics)"""
+
+    # Checkpoints, resuming, evaluating a saved model
+    checkpoint_every: int = 100_000
+    """checkpoint every this many env steps, and at the end of the run (0: at the end only)"""
+    resume: str | None = None
+    """continue a killed run: `runs/<run_name>` or a checkpoint file; the saved settings are used"""
+    evaluate: str | None = None
+    """evaluate a saved model (`runs/<run_name>` or a checkpoint file) for --eval-episodes episodes and exit"""
+    deterministic: bool = False
+    """with --evaluate: act with the most probable (argmax) action instead of sampling"""
     quiet: bool = False
     """print nothing while training (errors still go to stderr); sweep.py passes it"""
 
@@ -160,9 +175,10 @@ class DiscretizeAction(gym.ActionWrapper):
         return self.corners[int(action)].copy()
 
 
-def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool) -> Callable[[], gym.Env]:
+def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool, index: int = 0) -> Callable[[], gym.Env]:
     """Per env: raw episode stats, the 2^A discretization and (for discretized MuJoCo tasks) the
-    obs/reward normalization of the continuous scripts. `normalize` is already resolved (see `resolve`)."""
+    obs/reward normalization of the continuous scripts, under the outermost `RunState`.
+    `normalize` is already resolved (see `resolve`)."""
 
     def thunk() -> gym.Env:
         env = gym.make(env_id)
@@ -176,7 +192,7 @@ def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool) -> Ca
             )
             env = gym.wrappers.NormalizeReward(env, gamma=gamma)
             env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -REWARD_CLIP, REWARD_CLIP))
-        return env
+        return RunState(env, index)
 
     return thunk
 
@@ -185,7 +201,7 @@ def make_vector_env(args: Args, discretize: bool, normalize: bool) -> gym.vector
     # SAME_STEP: the obs returned on a done step is already the reset one, so every stored
     # transition is real (the default NEXT_STEP mode inserts a fake step after each episode).
     return gym.vector.SyncVectorEnv(
-        [make_env(args.env_id, args.gamma, discretize, normalize) for _ in range(args.num_envs)],
+        [make_env(args.env_id, args.gamma, discretize, normalize, i) for i in range(args.num_envs)],
         autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
 
@@ -198,12 +214,50 @@ def find_wrapper(env: gym.Env, wrapper_type: type) -> gym.Wrapper | None:
     return None
 
 
-def obs_statistics(envs: gym.vector.SyncVectorEnv) -> tuple[np.ndarray, np.ndarray] | None:
+# Plain-data attributes of an env and its wrappers: step counters, episode statistics, running
+# normalization statistics, the env's RNG. Saved and restored so a resumed run continues the very
+# same trajectories (MuJoCo's simulation state, MjData, is saved whole).
+ENV_STATE_TYPES = (bool, int, float, np.ndarray, np.generic, np.random.Generator, RunningMeanStd, collections.deque)
+
+
+class RunState(gym.Wrapper):
+    """Outermost wrapper that reads and restores what a run needs of its env. The vector env calls
+    these methods by name (`envs.call`)."""
+
+    def __init__(self, env: gym.Env, index: int):
+        super().__init__(env)
+        self.index = index
+
+    def obs_statistics(self) -> tuple[np.ndarray, np.ndarray] | None:
+        norm = find_wrapper(self.env, gym.wrappers.NormalizeObservation)
+        return None if norm is None else (norm.obs_rms.mean.copy(), norm.obs_rms.var.copy())
+
+    def get_state(self) -> dict:
+        layers, layer = [], self.env
+        while True:
+            layers.append({k: copy.deepcopy(v) for k, v in vars(layer).items() if isinstance(v, ENV_STATE_TYPES)})
+            if not isinstance(layer, gym.Wrapper):
+                break
+            layer = layer.env
+        sim = pickle.dumps(layer.data) if hasattr(layer, "data") and hasattr(layer, "model") else None
+        return {"layers": layers, "sim": sim}
+
+    def set_state(self, states: list[dict]) -> None:
+        """Restore this env's entry of `states` (one per env of the vector env)."""
+        state, layer = states[self.index], self.env
+        for attrs in state["layers"]:
+            for key, value in attrs.items():
+                setattr(layer, key, copy.deepcopy(value))
+            if not isinstance(layer, gym.Wrapper):
+                break
+            layer = layer.env
+        if state["sim"] is not None:
+            layer.data = pickle.loads(state["sim"])
+
+
+def obs_statistics(envs: gym.vector.VectorEnv) -> tuple[np.ndarray, np.ndarray] | None:
     """Copy of the first training env's observation mean/var (None without normalization)."""
-    norm = find_wrapper(envs.envs[0], gym.wrappers.NormalizeObservation)
-    if norm is None:
-        return None
-    return norm.obs_rms.mean.copy(), norm.obs_rms.var.copy()
+    return envs.call("obs_statistics")[0]
 
 
 def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
@@ -255,20 +309,21 @@ class Evaluator:
     def __init__(self, env_id: str, episodes: int, seed: int, discretize: bool):
         self.envs = [DiscretizeAction(gym.make(env_id)) if discretize else gym.make(env_id) for _ in range(episodes)]
         self.seed = seed
-        self.calls = 0
-        self.generator = torch.Generator().manual_seed(seed)  # keeps training's RNG stream untouched
 
     @torch.inference_mode()
     def __call__(
         self,
         actor: nn.Module,
         stats: tuple[np.ndarray, np.ndarray] | None,
+        call: int = 0,
         deterministic: bool = False,
     ) -> np.ndarray:
-        """Returns each episode's undiscounted raw return."""
+        """Returns each episode's undiscounted raw return. The episodes' seeds and the sampled actions depend
+        only on (seed, call): evaluation never touches training's RNG, and a resumed run evaluates exactly as
+        the uninterrupted one."""
         episodes = len(self.envs)
-        base_seed = self.seed + 100_003 * (self.calls + 1)
-        self.calls += 1
+        base_seed = self.seed + 100_003 * (call + 1)
+        generator = torch.Generator().manual_seed(base_seed)
         obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
         returns = np.zeros(episodes)
         active = list(range(episodes))
@@ -277,7 +332,7 @@ class Evaluator:
             if deterministic:
                 action = logits.argmax(-1).numpy()
             else:
-                action = torch.multinomial(logits.softmax(-1), 1, generator=self.generator).squeeze(-1).numpy()
+                action = torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1).numpy()
             still_active = []
             for row, i in enumerate(active):
                 o, r, terminated, truncated, _ = self.envs[i].step(int(action[row]))
@@ -291,6 +346,49 @@ class Evaluator:
     def close(self) -> None:
         for env in self.envs:
             env.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# Checkpoints: one file with everything needed to continue and to act
+# ----------------------------------------------------------------------------------------------
+CHECKPOINT_NAME = "checkpoint.pt"
+CHECKPOINT_FORMAT = "ppo_baseline_discrete/1"
+
+
+def save_checkpoint(path: str, payload: dict) -> None:
+    """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then)."""
+    tmp = f"{path}.tmp"
+    with open(tmp, "wb") as f:
+        torch.save(payload, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str) -> dict:
+    """Load `runs/<run>` (its latest checkpoint) or a checkpoint file; one-line error if missing or corrupt."""
+    if os.path.isdir(path):
+        path = os.path.join(path, CHECKPOINT_NAME)
+    if not os.path.isfile(path):
+        fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file")
+    try:
+        # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        fail(f"{path} is not a ppo_baseline_discrete checkpoint")
+    checkpoint["path"] = path
+    return checkpoint
+
+
+def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") -> nn.Sequential:
+    saved = Args(**checkpoint["args"])
+    rng = torch.get_rng_state()  # building the net draws random inits; keep the caller's RNG untouched
+    actor = make_actor(checkpoint["obs_dim"], checkpoint["num_actions"], saved.hidden_size)
+    torch.set_rng_state(rng)
+    actor.load_state_dict(checkpoint["actor"])
+    return actor.to(device)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -345,8 +443,18 @@ def seed_everything(seed: int, torch_deterministic: bool) -> None:
     torch.backends.cudnn.deterministic = torch_deterministic
 
 
-def train(args: Args) -> dict:
-    """Runs PPO; returns the final actor, critic and run folder."""
+def rng_states() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def set_rng_states(states: dict) -> None:
+    torch.set_rng_state(states["torch"])
+    np.random.set_state(states["numpy"])
+    random.setstate(states["python"])
+
+
+def train(args: Args, checkpoint: dict | None = None) -> dict:
+    """Runs PPO (from scratch, or continuing `checkpoint`); returns the final actor, critic and run folder."""
     discretize, normalize = resolve(args)
     say = (lambda *_: None) if args.quiet else print
     torch.set_num_threads(args.torch_threads)
@@ -361,7 +469,7 @@ def train(args: Args) -> dict:
     minibatch_size = batch_size // args.num_minibatches
     total_updates = args.total_timesteps // batch_size
     updates_per_cycle = max(args.cycle_steps // batch_size, 1)
-    if args.total_timesteps % batch_size:
+    if args.total_timesteps % batch_size and checkpoint is None:
         say(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
               f"the run does {total_updates} updates = {total_updates * batch_size} steps")
     say(f"{args.env_id}: {num_actions} discrete actions"
@@ -369,23 +477,33 @@ def train(args: Args) -> dict:
 
     from torch.utils.tensorboard import SummaryWriter
 
-    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    run_dir = os.path.join(args.track_dir, run_name)
-    writer = SummaryWriter(run_dir)
-    writer.add_text(
-        "hyperparameters",
-        "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
-    )
+    if checkpoint is None:
+        run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+        run_dir = os.path.join(args.track_dir, run_name)
+        writer = SummaryWriter(run_dir)
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
+        )
+    else:
+        run_dir = os.path.dirname(checkpoint["path"])
+        # purge_step hides whatever the killed run logged after its last checkpoint
+        writer = SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1)
+    checkpoint_path = os.path.join(run_dir, CHECKPOINT_NAME)
 
     actor = make_actor(obs_dim, num_actions, args.hidden_size).to(device)
     critic = make_critic(obs_dim).to(device)
     optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5)
+    params = optimizer.param_groups[0]["params"]
     n_params = count_parameters(actor, critic)
     say(f"PPO: {n_params} parameters (actor + critic)")
     evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed, discretize) if args.eval_every else None
+    eval_calls = 0 if checkpoint is None else checkpoint["eval_calls"]
 
     def evaluate_and_log(step: int) -> None:
-        returns = evaluator(actor, obs_statistics(envs))
+        nonlocal eval_calls
+        returns = evaluator(actor, obs_statistics(envs), eval_calls)
+        eval_calls += 1
         writer.add_scalar("eval/episodic_return", returns.mean(), step)
         writer.add_scalar("eval/episodic_return_std", returns.std(), step)
         say(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
@@ -398,17 +516,41 @@ def train(args: Args) -> dict:
     dones = torch.zeros((args.num_steps, args.num_envs), device=device)
     values = torch.zeros((args.num_steps, args.num_envs), device=device)
 
-    global_step = 0
-    start_time = time.time()
-    next_obs_np, _ = envs.reset(seed=args.seed)
-    envs.action_space.seed(args.seed)
-    next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
-    next_done = torch.zeros(args.num_envs, device=device)
-    if evaluator is not None:
-        evaluate_and_log(0)
-    writer.add_scalar("charts/parameters", n_params, global_step)
+    def make_checkpoint(updates_done: int) -> dict:
+        return {
+            "format": CHECKPOINT_FORMAT, "args": asdict(args), "obs_dim": obs_dim, "num_actions": num_actions,
+            "discretize": discretize, "updates_done": updates_done, "global_step": global_step,
+            "elapsed": time.time() - start_time,
+            "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
+            "obs_stats": obs_statistics(envs), "env_states": envs.call("get_state"),
+            "next_obs": next_obs.cpu(), "next_done": next_done.cpu(), "rng": rng_states(), "eval_calls": eval_calls,
+        }
 
-    for update in range(1, total_updates + 1):
+    if checkpoint is None:
+        global_step, start_update = 0, 1
+        start_time = time.time()
+        next_obs_np, _ = envs.reset(seed=args.seed)
+        envs.action_space.seed(args.seed)
+        next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+        next_done = torch.zeros(args.num_envs, device=device)
+        if evaluator is not None:
+            evaluate_and_log(0)
+        writer.add_scalar("charts/parameters", n_params, global_step)
+    else:
+        global_step, start_update = checkpoint["global_step"], checkpoint["updates_done"] + 1
+        start_time = time.time() - checkpoint["elapsed"]
+        envs.reset(seed=args.seed)  # sets up the vector env; then every env gets its saved state back
+        envs.call("set_state", checkpoint["env_states"])
+        next_obs = checkpoint["next_obs"].to(device)
+        next_done = checkpoint["next_done"].to(device)
+        actor.load_state_dict(checkpoint["actor"])
+        critic.load_state_dict(checkpoint["critic"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        set_rng_states(checkpoint["rng"])
+        say(f"resumed {checkpoint['path']} at global_step={global_step}")
+    last_checkpoint_step = global_step
+
+    for update in range(start_update, total_updates + 1):
         if args.lr_schedule == "global":
             frac = 1.0 - (update - 1.0) / total_updates
         elif args.lr_schedule == "cyclic":
@@ -503,7 +645,7 @@ def train(args: Args) -> dict:
 
                 optimizer.zero_grad()
                 loss.backward()
-                nn.utils.clip_grad_norm_([*actor.parameters(), *critic.parameters()], args.max_grad_norm)
+                nn.utils.clip_grad_norm_(params, args.max_grad_norm)
                 optimizer.step()
 
             if args.target_kl is not None and approx_kl > args.target_kl:
@@ -525,6 +667,16 @@ def train(args: Args) -> dict:
         sps = int(global_step / (time.time() - start_time))
         writer.add_scalar("charts/SPS", sps, global_step)
 
+        # --- non-finite guard: stop before anything bad is written to the checkpoint ---
+        if not math.isfinite(loss.item()) or not all(torch.isfinite(p).all() for p in params):
+            writer.close()
+            fail(f"non-finite loss or parameters at global_step={global_step} (update {update}); "
+                 f"the last good checkpoint {checkpoint_path} is intact")
+        if update == total_updates or (
+                args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every):
+            save_checkpoint(checkpoint_path, make_checkpoint(update))
+            last_checkpoint_step = global_step
+
     if evaluator is not None and global_step % args.eval_every >= args.num_envs:
         evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
     if evaluator is not None:
@@ -534,9 +686,65 @@ def train(args: Args) -> dict:
     return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step}
 
 
+# ----------------------------------------------------------------------------------------------
+# Command line: train, resume, or evaluate a saved model
+# ----------------------------------------------------------------------------------------------
+# Settings a resumed run may change; every other flag must match the checkpoint.
+RESUME_OVERRIDABLE = {"resume", "quiet", "checkpoint_every", "torch_threads", "cuda"}
+
+
+def explicit_fields(argv: list[str]) -> set[str]:
+    """Names of the Args fields given on the command line (`--env-id X`, `--no-normalize`, ...)."""
+    names = {f for f in Args.__dataclass_fields__}
+    given = set()
+    for token in argv:
+        if not token.startswith("--"):
+            continue
+        name = token[2:].split("=")[0].replace("-", "_")
+        if name not in names and name.startswith("no_") and name[3:] in names:
+            name = name[3:]
+        if name in names:
+            given.add(name)
+    return given
+
+
+def resumed_args(args: Args, checkpoint: dict, given: set[str]) -> Args:
+    """The checkpoint's settings; a conflicting flag on the command line is an error."""
+    saved = Args(**checkpoint["args"])
+    for name in sorted(given - RESUME_OVERRIDABLE):
+        if getattr(args, name) != getattr(saved, name):
+            fail(f"--{name.replace('_', '-')} {getattr(args, name)} differs from the checkpoint's "
+                 f"{getattr(saved, name)}; a resumed run keeps its settings (drop the flag)")
+    for name in given & RESUME_OVERRIDABLE:
+        setattr(saved, name, getattr(args, name))
+    return saved
+
+
+def evaluate_saved(args: Args) -> np.ndarray:
+    """--evaluate: the saved policy with its saved observation statistics frozen."""
+    checkpoint = load_checkpoint(args.evaluate)
+    saved = Args(**checkpoint["args"])
+    torch.set_num_threads(args.torch_threads)
+    actor = actor_from_checkpoint(checkpoint)
+    evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed, checkpoint["discretize"])
+    returns = evaluator(actor, checkpoint["obs_stats"], 0, args.deterministic)
+    evaluator.close()
+    mode = "deterministic" if args.deterministic else "stochastic"
+    print(f"{saved.env_id}, PPO, step {checkpoint['global_step']}: "
+          f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
+    return returns
+
+
 def main() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
-    train(args)
+    if args.evaluate:
+        evaluate_saved(args)
+        return
+    checkpoint = None
+    if args.resume:
+        checkpoint = load_checkpoint(args.resume)
+        args = resumed_args(args, checkpoint, explicit_fields(sys.argv[1:]))
+    train(args, checkpoint)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,9 @@
 """Cascade and PPO on discrete actions: the 2^A discretization, the logits combination, parameter
-counts, short runs as a user runs them, bad input, and learning CartPole."""
+counts, short runs as a user runs them, bad input, checkpoints (exact resume, --evaluate, --resume
+errors), and learning CartPole."""
+
+import os
+import shutil
 
 import gymnasium as gym
 import numpy as np
@@ -242,6 +246,104 @@ def test_help_documents_every_flag():
                  "--fallback-init", "--hidden-size", "--num-layers", "--no-normalize", "--eval-every",
                  "--eval-episodes"]:
         assert flag in proc.stdout
+
+
+@pytest.fixture(scope="module")
+def cartpole_run(tmp_path_factory):
+    """One tiny 2-net CartPole-v1 run, checkpointing after every update; keeps a copy of the checkpoint
+    written after update 1 of 2 of iteration 2."""
+    track = tmp_path_factory.mktemp("runs")
+    args = cpd.Args(env_id="CartPole-v1", n=2, k=1024, eval_every=512, eval_episodes=2, checkpoint_every=512,
+                    track_dir=str(track), quiet=True, **TINY)
+    real_save = cpd.save_checkpoint
+    mid = str(tmp_path_factory.mktemp("mid") / "mid.pt")
+
+    def keep_copy(path, payload):
+        real_save(path, payload)
+        if (payload["iteration"], payload["updates_done"]) == (2, 1):
+            shutil.copy(path, mid)
+
+    cpd.save_checkpoint = keep_copy
+    try:
+        result = cpd.train(args)
+    finally:
+        cpd.save_checkpoint = real_save
+    return {**result, "mid": mid}
+
+
+def resume_from(module, checkpoint_file, folder):
+    """As a killed run is resumed: the checkpoint alone, in its run folder, with its saved settings."""
+    os.makedirs(folder)
+    shutil.copy(checkpoint_file, os.path.join(folder, "checkpoint.pt"))
+    checkpoint = module.load_checkpoint(str(folder))
+    return module.train(module.Args(**checkpoint["args"]), checkpoint)
+
+
+def assert_same_parameters(a, b):
+    a, b = a.state_dict(), b.state_dict()
+    assert a.keys() == b.keys()
+    for key in a:
+        torch.testing.assert_close(b[key], a[key], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("start", ["iteration_1.pt", "mid"])
+def test_cascade_resume_gives_identical_parameters(cartpole_run, tmp_path, start):
+    run_dir = cartpole_run["run_dir"]
+    assert {"checkpoint.pt", "iteration_1.pt", "iteration_2.pt"} <= set(os.listdir(run_dir))
+    source = os.path.join(run_dir, start) if start != "mid" else cartpole_run["mid"]
+    first = cpd.load_checkpoint(source)
+    expected = (1, 2, 1024, 1) if start != "mid" else (2, 1, 1536, 2)
+    assert (first["iteration"], first["updates_done"], first["global_step"], first["actor_size"]) == expected
+    resumed = resume_from(cpd, source, tmp_path / "resumed")
+    assert_same_parameters(cartpole_run["actor"], resumed["actor"])
+    assert_same_parameters(cartpole_run["critic"], resumed["critic"])
+    # the resumed run evaluates exactly as the uninterrupted one did from the checkpoint on
+    original = read_scalars(run_dir)["eval/episodic_return"]
+    again = read_scalars(resumed["run_dir"])["eval/episodic_return"]
+    assert again == [(s, v) for s, v in original if s > first["global_step"]]
+
+
+def test_cascade_evaluate_and_resume_errors(cartpole_run, tmp_path):
+    run_dir = cartpole_run["run_dir"]
+    proc = run_script("cascade_ppo_discrete.py", "--evaluate", run_dir, "--eval-episodes", "2", "--deterministic")
+    assert proc.returncode == 0, proc.stderr
+    assert "CartPole-v1, 2 base net(s), step 2048: return" in proc.stdout
+    assert " ± " in proc.stdout and "over 2 deterministic episodes" in proc.stdout
+    for extra, message in [(["--resume", str(tmp_path / "nope")], "no checkpoint at"),
+                           (["--resume", run_dir, "--env-id", "Acrobot-v1"], "--env-id Acrobot-v1 differs")]:
+        proc = run_script("cascade_ppo_discrete.py", *extra)
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert proc.returncode != 0
+        assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], (extra, proc.stderr)
+
+
+def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
+    """Discretized Hopper (MuJoCo state and normalization statistics restored): resuming the checkpoint
+    written half way gives the uninterrupted run's parameters."""
+    args = pbd.Args(env_id="Hopper-v4", total_timesteps=2048, eval_every=512, eval_episodes=2, checkpoint_every=512,
+                    track_dir=str(tmp_path / "a"), quiet=True, **TINY)
+    real_save = pbd.save_checkpoint
+
+    def keep_copy(path, payload):
+        real_save(path, payload)
+        if payload["updates_done"] == 2:
+            shutil.copy(path, tmp_path / "mid.pt")
+
+    pbd.save_checkpoint = keep_copy
+    try:
+        full = pbd.train(args)
+    finally:
+        pbd.save_checkpoint = real_save
+    checkpoint = pbd.load_checkpoint(str(tmp_path / "mid.pt"))
+    assert checkpoint["global_step"] == 1024 and checkpoint["env_states"][0]["sim"] is not None
+    resumed = resume_from(pbd, tmp_path / "mid.pt", tmp_path / "b")
+    assert_same_parameters(full["actor"], resumed["actor"])
+    assert_same_parameters(full["critic"], resumed["critic"])
+    proc = run_script("ppo_baseline_discrete.py", "--evaluate", full["run_dir"], "--eval-episodes", "2")
+    assert proc.returncode == 0 and "over 2 stochastic episodes" in proc.stdout and " ± " in proc.stdout, proc.stderr
+    proc = run_script("ppo_baseline_discrete.py", "--resume", full["run_dir"], "--hidden-size", "16")
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode != 0 and len(lines) == 1 and "--hidden-size 16 differs" in lines[0], proc.stderr
 
 
 # Budget search, evaluation every k/8 with 10 episodes, best 2-net evaluation >= 400: k = 153,600 passed
