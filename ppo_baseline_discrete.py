@@ -55,8 +55,8 @@ class Args:
     """the id of a gymnasium environment with a Discrete action space, or a Box one to discretize (e.g. Hopper-v4)"""
     discretize: Literal["auto", "on", "off"] = "auto"
     """auto: discretize a Box action space of A <= 10 dims into 2^A actions (Humanoid's 17 are refused), use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
-    normalize: bool = True
-    """observation and reward normalization (clip ±10) on discretized Box envs, as ppo_baseline.py (`--no-normalize` turns it off); natively discrete envs (e.g. CartPole-v1) are never normalized, as in CleanRL ppo.py"""
+    normalize: bool = False
+    """observation and reward normalization (clip ±10) of discretized Box envs; off by default because the paper ran CleanRL ppo.py unmodified, which has none; natively discrete envs are never normalized"""
 
     # Network and schedule
     total_timesteps: int = 10_000_000

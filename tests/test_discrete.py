@@ -147,10 +147,11 @@ def test_parameter_counts_by_hand():
 
 def test_normalization_and_discretization_follow_the_env():
     assert cpd.resolve(cpd.Args(env_id="CartPole-v1")) == (False, False)  # CleanRL ppo.py: no normalization
-    assert cpd.resolve(cpd.Args(env_id="Hopper-v4")) == (True, True)
-    assert cpd.resolve(cpd.Args(env_id="Hopper-v4", normalize=False)) == (True, False)
+    assert cpd.resolve(cpd.Args(env_id="Hopper-v4")) == (True, False)  # the paper: ppo.py unmodified
+    assert cpd.resolve(cpd.Args(env_id="Hopper-v4", normalize=True)) == (True, True)
     assert pbd.resolve(pbd.Args(env_id="CartPole-v1", discretize="off")) == (False, False)
-    assert pbd.resolve(pbd.Args(env_id="Hopper-v4", discretize="on")) == (True, True)
+    assert pbd.resolve(pbd.Args(env_id="Hopper-v4", discretize="on", normalize=True)) == (True, True)
+    assert pbd.resolve(pbd.Args(env_id="Hopper-v4", discretize="on")) == (True, False)
 
 
 def test_each_iteration_gets_fresh_critic_and_optimizer(tmp_path, capsys):
@@ -174,7 +175,7 @@ def test_each_iteration_gets_fresh_critic_and_optimizer(tmp_path, capsys):
 
 def test_cascade_discretized_hopper_run_writes_expected_scalars(tmp_path):
     proc = run_script("cascade_ppo_discrete.py", "--env-id", "Hopper-v4", "--n", "3", "--k", "1024",
-                      "--update-epochs", "2", "--eval-every", "1024", "--eval-episodes", "2",
+                      "--update-epochs", "2", "--eval-every", "1024", "--eval-episodes", "2", "--normalize",
                       "--track-dir", tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "8 discrete actions (discretized Box), normalization on" in proc.stdout
@@ -321,7 +322,7 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
     """Discretized Hopper (MuJoCo state and normalization statistics restored): resuming the checkpoint
     written half way gives the uninterrupted run's parameters."""
     args = pbd.Args(env_id="Hopper-v4", total_timesteps=2048, eval_every=512, eval_episodes=2, checkpoint_every=512,
-                    track_dir=str(tmp_path / "a"), quiet=True, **TINY)
+                    normalize=True, track_dir=str(tmp_path / "a"), quiet=True, **TINY)
     real_save = pbd.save_checkpoint
 
     def keep_copy(path, payload):
