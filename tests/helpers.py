@@ -1,4 +1,6 @@
+import contextlib
 import os
+import shutil
 import subprocess
 import sys
 
@@ -26,3 +28,37 @@ def only_run_dir(track_dir):
     runs = os.listdir(track_dir)
     assert len(runs) == 1, runs
     return os.path.join(track_dir, runs[0])
+
+
+def error_line(proc):
+    """The single `error: ...` line a script prints on bad input, after checking it exited non-zero."""
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode != 0, proc.stdout[-2000:]
+    assert len(lines) == 1 and lines[0].startswith("error:"), proc.stderr[-2000:]
+    return lines[0]
+
+
+@contextlib.contextmanager
+def copy_checkpoint_when(module, wanted, destination):
+    """While active, every checkpoint `module` saves whose payload satisfies `wanted` is also copied
+    to `destination` (a checkpoint a killed run would have left behind)."""
+    real_save = module.save_checkpoint
+
+    def save_and_copy(path, payload):
+        real_save(path, payload)
+        if wanted(payload):
+            shutil.copy(path, destination)
+
+    module.save_checkpoint = save_and_copy
+    try:
+        yield
+    finally:
+        module.save_checkpoint = real_save
+
+
+def resume_from(module, checkpoint_file, folder):
+    """As a killed run is resumed: the checkpoint alone, in its run folder, with its saved settings."""
+    os.makedirs(folder)
+    shutil.copy(checkpoint_file, os.path.join(folder, "checkpoint.pt"))
+    checkpoint = module.load_checkpoint(str(folder))
+    return module.train(module.Args(**checkpoint["args"]), checkpoint)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import cascade_ppo_continuous as cpc
-from helpers import read_scalars, run_script
+from helpers import copy_checkpoint_when, error_line, read_scalars, resume_from, run_script
 
 BASE = dict(env_id="Hopper-v4", n=2, k=1024, num_steps=256, num_minibatches=4, update_epochs=2,
             eval_every=512, eval_episodes=2, quiet=True)
@@ -55,15 +55,8 @@ def test_crash_mid_write_leaves_previous_checkpoint_loadable(tmp_path, monkeypat
     assert cpc.load_checkpoint(path)["global_step"] == 1
 
 
-def resume_from(checkpoint_file, folder):
-    os.makedirs(folder)
-    shutil.copy(checkpoint_file, os.path.join(folder, "checkpoint.pt"))
-    checkpoint = cpc.load_checkpoint(str(folder))
-    return cpc.train(cpc.Args(**checkpoint["args"]), checkpoint)
-
-
 def test_resume_at_iteration_boundary_gives_identical_parameters(finished_run, tmp_path):
-    resumed = resume_from(os.path.join(finished_run["run_dir"], "iteration_1.pt"), tmp_path / "resumed")
+    resumed = resume_from(cpc, os.path.join(finished_run["run_dir"], "iteration_1.pt"), tmp_path / "resumed")
     original, again = finished_run["actor"].state_dict(), resumed["actor"].state_dict()
     assert original.keys() == again.keys()
     for key in original:
@@ -78,22 +71,10 @@ def test_resume_at_iteration_boundary_gives_identical_parameters(finished_run, t
 def test_resume_mid_iteration_gives_identical_parameters(tmp_path):
     # keep a copy of the checkpoint written after update 2 of 4 of iteration 2, resume from it
     args = cpc.Args(track_dir=str(tmp_path / "a"), checkpoint_every=256, **BASE)
-    snapshots = []
-    real_save = cpc.save_checkpoint
-
-    def keep_copy(path, payload):
-        real_save(path, payload)
-        if payload["iteration"] == 2 and payload["updates_done"] == 2:
-            shutil.copy(path, tmp_path / "mid.pt")
-            snapshots.append(payload["global_step"])
-
-    cpc.save_checkpoint = keep_copy
-    try:
+    with copy_checkpoint_when(cpc, lambda c: (c["iteration"], c["updates_done"]) == (2, 2), tmp_path / "mid.pt"):
         full = cpc.train(args)
-    finally:
-        cpc.save_checkpoint = real_save
-    assert snapshots == [1536]
-    resumed = resume_from(tmp_path / "mid.pt", tmp_path / "b")
+    assert cpc.load_checkpoint(str(tmp_path / "mid.pt"))["global_step"] == 1536
+    resumed = resume_from(cpc, tmp_path / "mid.pt", tmp_path / "b")
     for a, b in zip(full["actor"].parameters(), resumed["actor"].parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
@@ -171,10 +152,7 @@ def test_resume_bad_input(finished_run, tmp_path):
     corrupt.write_bytes(b"not a checkpoint at all")
     cases.append((["--resume", str(corrupt)], "cannot read checkpoint"))
     for extra, message in cases:
-        proc = run_script("cascade_ppo_continuous.py", *extra)
-        lines = [line for line in proc.stderr.splitlines() if line.strip()]
-        assert proc.returncode != 0
-        assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], (extra, proc.stderr)
+        assert message in error_line(run_script("cascade_ppo_continuous.py", *extra)), extra
     assert digest(run_dir) == before
 
 
@@ -194,9 +172,9 @@ def test_capture_video_writes_an_mp4_or_says_why(finished_run, tmp_path):
     proc = run_script("cascade_ppo_continuous.py", "--evaluate", run_copy, "--eval-episodes", "1",
                       "--capture-video", env={"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
     if proc.returncode != 0:  # no GL backend on this machine: the one-line explanation is the contract
-        lines = [line for line in proc.stderr.splitlines() if line.strip()]
-        assert len(lines) == 1 and "cannot render" in lines[0] and "MUJOCO_GL" in lines[0]
-        pytest.skip(f"no OpenGL backend here: {lines[0]}")
+        line = error_line(proc)
+        assert "cannot render" in line and "MUJOCO_GL" in line
+        pytest.skip(f"no OpenGL backend here: {line}")
     video = run_copy / "checkpoint_stochastic.mp4"
     assert video.exists() and video.stat().st_size > 1000
     assert open(video, "rb").read(12)[4:8] == b"ftyp"  # an mp4 container
@@ -207,29 +185,14 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
 
     base = dict(env_id="Hopper-v4", total_timesteps=2048, num_steps=256, num_minibatches=4, update_epochs=2,
                 eval_every=512, eval_episodes=2, quiet=True)
-    real_save = pb.save_checkpoint
-
-    def keep_copy(path, payload):
-        real_save(path, payload)
-        if payload["updates_done"] == 4:
-            shutil.copy(path, tmp_path / "mid.pt")
-
-    pb.save_checkpoint = keep_copy
-    try:
+    with copy_checkpoint_when(pb, lambda c: c["updates_done"] == 4, tmp_path / "mid.pt"):
         full = pb.train(pb.Args(track_dir=str(tmp_path / "a"), checkpoint_every=512, **base))
-    finally:
-        pb.save_checkpoint = real_save
-    os.makedirs(tmp_path / "b")
-    shutil.copy(tmp_path / "mid.pt", tmp_path / "b" / "checkpoint.pt")
-    checkpoint = pb.load_checkpoint(str(tmp_path / "b"))
-    assert checkpoint["global_step"] == 1024
-    resumed = pb.train(pb.Args(**checkpoint["args"]), checkpoint)
+    assert pb.load_checkpoint(str(tmp_path / "mid.pt"))["global_step"] == 1024
+    resumed = resume_from(pb, tmp_path / "mid.pt", tmp_path / "b")
     for a, b in zip(full["actor"].parameters(), resumed["actor"].parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     proc = run_script("ppo_baseline.py", "--evaluate", full["run_dir"], "--eval-episodes", "2")
     assert proc.returncode == 0 and "over 2 stochastic episodes" in proc.stdout, proc.stderr
     for extra, message in [(["--resume", full["run_dir"], "--hidden-size", "16"], "--hidden-size 16 differs"),
                            (["--evaluate", str(tmp_path / "missing")], "no checkpoint at")]:
-        proc = run_script("ppo_baseline.py", *extra)
-        lines = [line for line in proc.stderr.splitlines() if line.strip()]
-        assert proc.returncode != 0 and len(lines) == 1 and message in lines[0], proc.stderr
+        assert message in error_line(run_script("ppo_baseline.py", *extra)), extra

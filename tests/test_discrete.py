@@ -3,7 +3,6 @@ counts, short runs as a user runs them, bad input, checkpoints (exact resume, --
 errors), and learning CartPole."""
 
 import os
-import shutil
 
 import gymnasium as gym
 import numpy as np
@@ -12,7 +11,7 @@ import torch
 
 import cascade_ppo_discrete as cpd
 import ppo_baseline_discrete as pbd
-from helpers import only_run_dir, read_scalars, run_script
+from helpers import copy_checkpoint_when, error_line, only_run_dir, read_scalars, resume_from, run_script
 
 TINY = dict(num_steps=128, num_minibatches=4, update_epochs=2)
 
@@ -233,10 +232,7 @@ BAD_INPUT = [
 
 @pytest.mark.parametrize("script,extra,message", BAD_INPUT)
 def test_bad_input_is_one_clear_line(tmp_path, script, extra, message):
-    proc = run_script(script, "--track-dir", tmp_path / "runs", *extra)
-    assert proc.returncode != 0
-    lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], proc.stderr
+    assert message in error_line(run_script(script, "--track-dir", tmp_path / "runs", *extra))
     assert not (tmp_path / "runs").exists()
 
 
@@ -256,28 +252,10 @@ def cartpole_run(tmp_path_factory):
     track = tmp_path_factory.mktemp("runs")
     args = cpd.Args(env_id="CartPole-v1", n=2, k=1024, eval_every=512, eval_episodes=2, checkpoint_every=512,
                     track_dir=str(track), quiet=True, **TINY)
-    real_save = cpd.save_checkpoint
     mid = str(tmp_path_factory.mktemp("mid") / "mid.pt")
-
-    def keep_copy(path, payload):
-        real_save(path, payload)
-        if (payload["iteration"], payload["updates_done"]) == (2, 1):
-            shutil.copy(path, mid)
-
-    cpd.save_checkpoint = keep_copy
-    try:
+    with copy_checkpoint_when(cpd, lambda c: (c["iteration"], c["updates_done"]) == (2, 1), mid):
         result = cpd.train(args)
-    finally:
-        cpd.save_checkpoint = real_save
     return {**result, "mid": mid}
-
-
-def resume_from(module, checkpoint_file, folder):
-    """As a killed run is resumed: the checkpoint alone, in its run folder, with its saved settings."""
-    os.makedirs(folder)
-    shutil.copy(checkpoint_file, os.path.join(folder, "checkpoint.pt"))
-    checkpoint = module.load_checkpoint(str(folder))
-    return module.train(module.Args(**checkpoint["args"]), checkpoint)
 
 
 def assert_same_parameters(a, b):
@@ -312,10 +290,7 @@ def test_cascade_evaluate_and_resume_errors(cartpole_run, tmp_path):
     assert " ± " in proc.stdout and "over 2 deterministic episodes" in proc.stdout
     for extra, message in [(["--resume", str(tmp_path / "nope")], "no checkpoint at"),
                            (["--resume", run_dir, "--env-id", "Acrobot-v1"], "--env-id Acrobot-v1 differs")]:
-        proc = run_script("cascade_ppo_discrete.py", *extra)
-        lines = [line for line in proc.stderr.splitlines() if line.strip()]
-        assert proc.returncode != 0
-        assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], (extra, proc.stderr)
+        assert message in error_line(run_script("cascade_ppo_discrete.py", *extra)), extra
 
 
 def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
@@ -323,18 +298,8 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
     written half way gives the uninterrupted run's parameters."""
     args = pbd.Args(env_id="Hopper-v4", total_timesteps=2048, eval_every=512, eval_episodes=2, checkpoint_every=512,
                     normalize=True, track_dir=str(tmp_path / "a"), quiet=True, **TINY)
-    real_save = pbd.save_checkpoint
-
-    def keep_copy(path, payload):
-        real_save(path, payload)
-        if payload["updates_done"] == 2:
-            shutil.copy(path, tmp_path / "mid.pt")
-
-    pbd.save_checkpoint = keep_copy
-    try:
+    with copy_checkpoint_when(pbd, lambda c: c["updates_done"] == 2, tmp_path / "mid.pt"):
         full = pbd.train(args)
-    finally:
-        pbd.save_checkpoint = real_save
     checkpoint = pbd.load_checkpoint(str(tmp_path / "mid.pt"))
     assert checkpoint["global_step"] == 1024 and checkpoint["env_states"][0]["sim"] is not None
     resumed = resume_from(pbd, tmp_path / "mid.pt", tmp_path / "b")
@@ -343,8 +308,7 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
     proc = run_script("ppo_baseline_discrete.py", "--evaluate", full["run_dir"], "--eval-episodes", "2")
     assert proc.returncode == 0 and "over 2 stochastic episodes" in proc.stdout and " ± " in proc.stdout, proc.stderr
     proc = run_script("ppo_baseline_discrete.py", "--resume", full["run_dir"], "--hidden-size", "16")
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert proc.returncode != 0 and len(lines) == 1 and "--hidden-size 16 differs" in lines[0], proc.stderr
+    assert "--hidden-size 16 differs" in error_line(proc)
 
 
 # Budget search, evaluation every k/8 with 10 episodes, best 2-net evaluation >= 400: k = 153,600 passed

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import cascade_ppo_continuous as cpc
-from helpers import only_run_dir, read_scalars, run_script
+from helpers import error_line, only_run_dir, read_scalars, run_script
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
 
@@ -122,10 +122,7 @@ BAD_INPUT = [
 
 @pytest.mark.parametrize("extra,message", BAD_INPUT)
 def test_bad_input_is_one_clear_line(tmp_path, extra, message):
-    proc = run_script("cascade_ppo_continuous.py", "--track-dir", tmp_path / "runs", *extra)
-    assert proc.returncode != 0
-    lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], proc.stderr
+    assert message in error_line(run_script("cascade_ppo_continuous.py", "--track-dir", tmp_path / "runs", *extra))
     assert not (tmp_path / "runs").exists()
 
 
@@ -133,10 +130,7 @@ def test_bad_input_is_one_clear_line(tmp_path, extra, message):
                                           (["--env-id", "Acrobot-v1"], "Box"),
                                           (["--total-timesteps", "100"], "smaller than one rollout batch")])
 def test_baseline_bad_input(tmp_path, extra, message):
-    proc = run_script("ppo_baseline.py", "--track-dir", tmp_path / "runs", *extra)
-    assert proc.returncode != 0
-    lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
-    assert len(lines) == 1 and message in lines[0], proc.stderr
+    assert message in error_line(run_script("ppo_baseline.py", "--track-dir", tmp_path / "runs", *extra))
     assert not (tmp_path / "runs").exists()
 
 
