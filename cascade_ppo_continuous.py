@@ -705,7 +705,7 @@ def validate(args: Args) -> None:
     if args.num_steps is None:
         args.num_steps = max(2048 // args.num_envs, 1)
     if args.num_steps < 1:
-        fail("--num-envs and --num-steps must be at least 1")
+        fail(f"--num-steps must be at least 1 (got {args.num_steps})")
     batch_size = args.num_envs * args.num_steps
     if args.k < batch_size:
         fail(f"--k {args.k} is smaller than one rollout batch (num_envs*num_steps = {batch_size}); raise --k")

@@ -535,7 +535,7 @@ def validate(args: Args) -> None:
     if args.num_steps is None:
         args.num_steps = max(2048 // args.num_envs, 1)
     if args.num_steps < 1:
-        fail("--num-envs and --num-steps must be at least 1")
+        fail(f"--num-steps must be at least 1 (got {args.num_steps})")
     batch_size = args.num_envs * args.num_steps
     if args.total_timesteps < batch_size:
         fail(f"--total-timesteps {args.total_timesteps} is smaller than one rollout batch "
