@@ -233,13 +233,41 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) 
 
 
 # ----------------------------------------------------------------------------------------------
-# The agent (CleanRL ppo_continuous_action)
+# The agent (CleanRL ppo_continuous_action) and its gradients, written out by hand
 # ----------------------------------------------------------------------------------------------
-def layer_init(in_features: int, out_features: int, gain: float) -> nn.Linear:
-    linear = nn.Linear(in_features, out_features)
-    nn.init.orthogonal_(linear.weight, gain)
-    nn.init.zeros_(linear.bias)
-    return linear
+# A 64-sample PPO minibatch of these nets is ~1 MFLOP: with autograd, recording and replaying ~80
+# tiny ops cost more than the math (SPEC-exact PPO, measured in benchmarks/throughput.py). So the
+# backward pass below is explicit: a few matmuls per layer, checked against autograd in
+# tests/test_gradients.py. To try another loss, change `ppo_loss_gradients` and run that test.
+class TanhMLP(nn.Module):
+    """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L, weights stored [in, out], orthogonal init (CleanRL)."""
+
+    def __init__(self, sizes: list[int], gains: list[float]):
+        super().__init__()
+        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
+        for d_in, d_out, gain in zip(sizes[:-1], sizes[1:], gains):
+            weight = torch.empty(d_out, d_in)
+            nn.init.orthogonal_(weight, gain)
+            self.weights.append(nn.Parameter(weight.T.contiguous()))
+            self.biases.append(nn.Parameter(torch.zeros(d_out)))
+
+    def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """Output [B, out]; appends each hidden activation to `hidden` when given (for `backward`)."""
+        *layers, (last_weight, last_bias) = zip(self.weights, self.biases)
+        for weight, bias in layers:
+            x = torch.tanh(torch.addmm(bias, x, weight))
+            if hidden is not None:
+                hidden.append(x)
+        return torch.addmm(last_bias, x, last_weight)
+
+    def backward(self, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
+        """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `forward(x, hidden)`."""
+        inputs = [x, *hidden]
+        for i in reversed(range(len(self.weights))):
+            torch.mm(inputs[i].T, grad_output, out=self.weights[i].grad)  # dL/dW = input^T dL/dz
+            torch.sum(grad_output, 0, out=self.biases[i].grad)
+            if i:  # dL/dz of the layer below: (dL/dz W^T) * tanh'(z), tanh' = 1 - tanh^2
+                grad_output = torch.mm(grad_output, self.weights[i].T).mul_(1.0 - inputs[i] * inputs[i])
 
 
 class Actor(nn.Module):
@@ -247,41 +275,107 @@ class Actor(nn.Module):
 
     def __init__(self, obs_dim: int, act_dim: int, hidden_size: int):
         super().__init__()
-        self.mean_net = nn.Sequential(
-            layer_init(obs_dim, hidden_size, math.sqrt(2)), nn.Tanh(),
-            layer_init(hidden_size, hidden_size, math.sqrt(2)), nn.Tanh(),
-            layer_init(hidden_size, act_dim, 0.01),
-        )
+        self.mean_net = TanhMLP([obs_dim, hidden_size, hidden_size, act_dim], [math.sqrt(2), math.sqrt(2), 0.01])
         self.log_std = nn.Parameter(torch.zeros(1, act_dim))
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean = self.mean_net(obs)
+    def forward(self, obs: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        mean = self.mean_net(obs, hidden)
         return mean, self.log_std.expand_as(mean)
 
+    def backward(self, obs: torch.Tensor, hidden: list[torch.Tensor], grad_mean: torch.Tensor,
+                 grad_log_std: torch.Tensor) -> None:
+        """Write the parameters' .grad from dL/dmean and dL/dlog_std [B, A] of `forward(obs, hidden)`."""
+        self.mean_net.backward(obs, hidden, grad_mean)
+        torch.sum(grad_log_std, 0, keepdim=True, out=self.log_std.grad)  # one vector shared by the batch
 
-def make_critic(obs_dim: int) -> nn.Sequential:
+
+def make_critic(obs_dim: int) -> TanhMLP:
     """The PPO value net, obs -> 64 -> 64 -> 1 (tanh)."""
-    return nn.Sequential(
-        layer_init(obs_dim, 64, math.sqrt(2)), nn.Tanh(),
-        layer_init(64, 64, math.sqrt(2)), nn.Tanh(),
-        layer_init(64, 1, 1.0),
-    )
+    return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
 
 
 def count_parameters(*modules: nn.Module) -> int:
     return sum(p.numel() for m in modules for p in m.parameters())
 
 
+def share_one_buffer(params: list[nn.Parameter]) -> nn.Parameter:
+    """Make every parameter, and its .grad, a view into one flat buffer; return that buffer as a Parameter.
+
+    The optimizer then updates a single tensor and the gradient norm is one reduction, instead of
+    one small op per parameter. Values are unchanged; the hand-written backward overwrites the .grad
+    views every minibatch (so there is no zero_grad)."""
+    flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
+    flat.grad = torch.zeros_like(flat)
+    offset = 0
+    for p in params:
+        p.data = flat.data[offset : offset + p.numel()].view_as(p)
+        p.grad = flat.grad[offset : offset + p.numel()].view_as(p)
+        offset += p.numel()
+    return flat
+
+
+def clip_grad_norm(flat: nn.Parameter, max_norm: float) -> None:
+    """torch.nn.utils.clip_grad_norm_ on the one gradient buffer: scale by min(1, max_norm / (norm + 1e-6))."""
+    flat.grad.mul_(torch.clamp(max_norm / (flat.grad.norm() + 1e-6), max=1.0))
+
+
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
-
-
-def gaussian_log_prob(action: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
-    """Sum over action dims of log Normal(action; mean, exp(log_std))."""
-    return (-0.5 * ((action - mean) * torch.exp(-log_std)) ** 2 - log_std - LOG_SQRT_2PI).sum(-1)
 
 
 def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
     return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
+
+
+def ppo_loss_gradients(
+    mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor, old_logprob: torch.Tensor,
+    advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor, args: Args,
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
+    """CleanRL's PPO loss on one minibatch, and its gradient w.r.t. the nets' outputs.
+
+    mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
+    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss terms and diagnostics as tensors.
+    """
+    batch = len(value)
+    # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
+    inv_std = torch.exp(-log_std)
+    u = (actions - mean) * inv_std
+    newlogprob = (-0.5 * u * u - log_std - LOG_SQRT_2PI).sum(1)
+    logratio = newlogprob - old_logprob
+    ratio = logratio.exp()
+    if args.norm_adv:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+    # Policy loss mean(max(-A r, -A clip(r, 1-eps, 1+eps))). Its gradient w.r.t. r is -A/B wherever
+    # the unclipped term is the max (inside the clip range both terms are equal: autograd's halves
+    # add up to the same) and 0 elsewhere; dr/dlogprob = r, so dL/dlogprob = (-A r)/B there.
+    pg_loss1 = -advantages * ratio
+    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+    grad_logprob = torch.where(pg_loss1 >= pg_loss2, pg_loss1, 0.0).div_(batch)[:, None]
+    # dlogprob/dmean = u / std, dlogprob/dlog_std = u^2 - 1
+    grad_mean = grad_logprob * u * inv_std
+    grad_log_std = grad_logprob * (u * u - 1.0)
+
+    # Value loss 0.5 mean(max((v - R)^2, (v_clip - R)^2)) with v_clip = v_old + clip(v - v_old, -eps, eps);
+    # the clipped branch passes a gradient only where v - v_old is inside the clip range.
+    if args.clip_vloss:
+        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
+        v_loss_unclipped, v_loss_clipped = (value - returns) ** 2, (v_clipped - returns) ** 2
+        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
+        inside = (value - old_value).abs() <= args.clip_coef
+        grad_v = torch.where(v_loss_unclipped >= v_loss_clipped, value - returns,
+                             torch.where(inside, v_clipped - returns, 0.0))
+    else:
+        v_loss = 0.5 * ((value - returns) ** 2).mean()
+        grad_v = value - returns
+    grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
+
+    loss = pg_loss + args.vf_coef * v_loss
+    if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
+        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
+        grad_log_std -= args.ent_coef / batch
+    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "logratio": logratio, "ratio": ratio}
+    return losses, grad_mean, grad_log_std, grad_value
 
 
 def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
@@ -481,7 +575,7 @@ def load_checkpoint(path: str) -> dict:
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
         fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "ppo_baseline/1":
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "ppo_baseline/2":
         fail(f"{path} is not a ppo_baseline checkpoint")
     checkpoint["path"] = path
     return checkpoint
@@ -572,6 +666,7 @@ def set_rng_states(states: dict) -> None:
     random.setstate(states["python"])
 
 
+@torch.no_grad()  # gradients are written out by hand (ppo_loss_gradients, TanhMLP.backward): no autograd
 def train(args: Args, checkpoint: dict | None = None) -> dict:
     """Runs PPO (from scratch, or continuing `checkpoint`); returns the final actor, critic and run folder."""
     validate(args)
@@ -609,8 +704,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
     actor = Actor(obs_dim, act_dim, args.hidden_size).to(device)
     critic = make_critic(obs_dim).to(device)
-    params = [*actor.parameters(), *critic.parameters()]
-    optimizer = make_optimizer(params, args.learning_rate)
+    params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+    optimizer = make_optimizer([params], args.learning_rate)
     n_params = count_parameters(actor, critic)
     runner = None
     if args.eval_every:
@@ -639,7 +734,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
     def make_checkpoint(updates_done: int) -> dict:
         return {
-            "format": "ppo_baseline/1", "args": asdict(args), "obs_dim": obs_dim, "act_dim": act_dim,
+            "format": "ppo_baseline/2", "args": asdict(args), "obs_dim": obs_dim, "act_dim": act_dim,
             "updates_done": updates_done, "global_step": global_step, "elapsed": time.time() - start_time,
             "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
             "obs_stats": obs_statistics(envs), "env_states": envs.call("get_state"),
@@ -686,9 +781,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             global_step += args.num_envs
             obs[step] = next_obs
             dones[step] = next_done
-            with torch.inference_mode():
-                mean, log_std = actor(next_obs)
-                action = mean + torch.exp(log_std) * noise[step]
+            mean, log_std = actor(next_obs)
+            action = mean + torch.exp(log_std) * noise[step]
             actions[step] = action
             step_log_std[step] = log_std
 
@@ -706,11 +800,10 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
                 evaluate(global_step)
 
         b_obs = obs.reshape(-1, obs_dim)
-        with torch.no_grad():
-            # log N(mean + std*noise; mean, std) only depends on the noise and the log-std
-            b_logprobs = (-0.5 * noise.pow(2) - step_log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
-            values = critic(b_obs).reshape(args.num_steps, args.num_envs)
-            next_value = critic(next_obs).reshape(args.num_envs)
+        # log N(mean + std*noise; mean, std) only depends on the noise and the log-std
+        b_logprobs = (-0.5 * noise.pow(2) - step_log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
+        values = critic(b_obs).reshape(args.num_steps, args.num_envs)
+        next_value = critic(next_obs).reshape(args.num_envs)
         advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
                                  args.gamma, args.gae_lambda)
         b_advantages = torch.as_tensor(advantages, device=device).reshape(-1)
@@ -729,41 +822,23 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
                 minibatch = batch[b_inds[start : start + minibatch_size]]
                 mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
                 mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
-                mean, log_std = actor(mb_obs)
-                newlogprob = gaussian_log_prob(mb_actions, mean, log_std)
-                newvalue = critic(mb_obs).squeeze(-1)
-                logratio = newlogprob - mb_logprobs
-                ratio = logratio.exp()
-                with torch.no_grad():
-                    clipfracs.append(((ratio - 1.0).abs() > args.clip_coef).float().mean())
+                actor_hidden, critic_hidden = [], []
+                mean, log_std = actor(mb_obs, actor_hidden)
+                newvalue = critic(mb_obs, critic_hidden).squeeze(1)
+                losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
+                    mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
+                clipfracs.append(((losses["ratio"] - 1.0).abs() > args.clip_coef).float().mean())
 
-                if args.norm_adv:
-                    mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
-                pg_loss1 = -mb_advantages * ratio
-                pg_loss2 = -mb_advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
-                pg_loss = torch.max(pg_loss1, pg_loss2).mean()
-
-                if args.clip_vloss:
-                    v_loss_unclipped = (newvalue - mb_returns) ** 2
-                    v_clipped = mb_values + torch.clamp(newvalue - mb_values, -args.clip_coef, args.clip_coef)
-                    v_loss_clipped = (v_clipped - mb_returns) ** 2
-                    v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
-                else:
-                    v_loss = 0.5 * ((newvalue - mb_returns) ** 2).mean()
-
-                loss = pg_loss + v_loss * args.vf_coef
-                if args.ent_coef:  # with the default 0.0 the entropy term has no gradient: skip its graph
-                    loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
-
-                optimizer.zero_grad()
-                loss.backward()
-                nn.utils.clip_grad_norm_(params, args.max_grad_norm, foreach=True)
+                actor.backward(mb_obs, actor_hidden, grad_mean, grad_log_std)
+                critic.backward(mb_obs, critic_hidden, grad_value)
+                clip_grad_norm(params, args.max_grad_norm)
                 optimizer.step()
 
-            with torch.no_grad():  # CleanRL's diagnostics, from the epoch's last minibatch
-                old_approx_kl = (-logratio).mean()
-                approx_kl = ((ratio - 1) - logratio).mean()
-                entropy_loss = gaussian_entropy(log_std).mean()
+            # CleanRL's diagnostics, from the epoch's last minibatch
+            logratio, ratio = losses["logratio"], losses["ratio"]
+            old_approx_kl = (-logratio).mean()
+            approx_kl = ((ratio - 1) - logratio).mean()
+            entropy_loss = gaussian_entropy(log_std).mean()
 
             if args.target_kl is not None and approx_kl > args.target_kl:
                 break
@@ -774,8 +849,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
         # --- logging (CleanRL names) ---
         writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
-        writer.add_scalar("losses/value_loss", v_loss.item(), global_step)
-        writer.add_scalar("losses/policy_loss", pg_loss.item(), global_step)
+        writer.add_scalar("losses/value_loss", losses["value_loss"].item(), global_step)
+        writer.add_scalar("losses/policy_loss", losses["policy_loss"].item(), global_step)
         writer.add_scalar("losses/entropy", entropy_loss.item(), global_step)
         writer.add_scalar("losses/old_approx_kl", old_approx_kl.item(), global_step)
         writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
@@ -786,7 +861,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         progress.update(global_step, sps)
 
         # --- non-finite guard: stop before anything bad is written to the checkpoint ---
-        if not math.isfinite(loss.item()) or not all(torch.isfinite(p).all() for p in params):
+        if not math.isfinite(losses["loss"].item()) or not torch.isfinite(params).all():
             writer.close()
             fail(f"non-finite loss or parameters at global_step={global_step} (update {update}); "
                  f"the last good checkpoint {checkpoint_path} is intact")

@@ -1,0 +1,105 @@
+"""The hand-written PPO gradients against autograd on CleanRL's loss, written independently here."""
+
+import pytest
+import torch
+from torch.distributions import Normal
+
+import ppo_baseline as pb
+
+
+def cleanrl_loss(mean, log_std, value, actions, old_logprob, advantages, returns, old_value, args):
+    """ppo_continuous_action.py's loss, with torch.distributions and autograd."""
+    dist = Normal(mean, log_std.exp())
+    logratio = dist.log_prob(actions).sum(1) - old_logprob
+    ratio = logratio.exp()
+    if args.norm_adv:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    pg_loss = torch.max(-advantages * ratio, -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)).mean()
+    if args.clip_vloss:
+        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
+        v_loss = 0.5 * torch.max((value - returns) ** 2, (v_clipped - returns) ** 2).mean()
+    else:
+        v_loss = 0.5 * ((value - returns) ** 2).mean()
+    return pg_loss - args.ent_coef * dist.entropy().sum(1).mean() + v_loss * args.vf_coef, ratio
+
+
+def minibatch(actor_fn, critic, obs_dim, act_dim, batch=64, seed=0):
+    """Random minibatch whose old log-probs and values are near the current ones, so that some
+    ratios and some values fall outside the clip range and some inside."""
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(batch, obs_dim, generator=g)
+    actions = torch.randn(batch, act_dim, generator=g)
+    with torch.no_grad():
+        mean, log_std = actor_fn(obs)[:2]
+        old_logprob = Normal(mean, log_std.exp()).log_prob(actions).sum(1) + 0.3 * torch.randn(batch, generator=g)
+        old_value = critic(obs).squeeze(1) + 0.3 * torch.randn(batch, generator=g)
+    return obs, actions, old_logprob, torch.randn(batch, generator=g), torch.randn(batch, generator=g), old_value
+
+
+ARG_VARIANTS = [
+    dict(norm_adv=True, clip_vloss=True, ent_coef=0.0),  # the defaults
+    dict(norm_adv=False, clip_vloss=False, ent_coef=0.01),
+    dict(norm_adv=True, clip_vloss=False, ent_coef=0.0),
+    dict(norm_adv=False, clip_vloss=True, ent_coef=0.05),
+]
+
+
+def randomize(module: torch.nn.Module, seed: int) -> None:
+    """Larger weights than the init (whose mean head is ~0.01): gradients of every size get tested."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.copy_(0.5 * torch.randn(p.shape, generator=g))
+
+
+@pytest.mark.parametrize("variant", ARG_VARIANTS)
+def test_baseline_gradients_match_autograd(variant):
+    args = pb.Args(**variant)
+    actor, critic = pb.Actor(7, 3, 16), pb.make_critic(7)
+    randomize(actor, 1)
+    randomize(critic, 2)
+    obs, actions, old_logprob, adv, returns, old_value = minibatch(actor, critic, 7, 3)
+    params = [*actor.parameters(), *critic.parameters()]
+
+    mean, log_std = actor(obs)
+    ref_loss, ratio = cleanrl_loss(mean, log_std, critic(obs).squeeze(1), actions, old_logprob, adv, returns,
+                                   old_value, args)
+    ref_grads = torch.autograd.grad(ref_loss, params)
+    clipped = ((ratio - 1).abs() > args.clip_coef).float().mean()
+    assert 0.1 < clipped < 0.9, "the minibatch should exercise both sides of the clip"
+
+    flat = pb.share_one_buffer(params)
+    flat.grad.fill_(float("nan"))  # every gradient entry must be written
+    with torch.no_grad():
+        actor_hidden, critic_hidden = [], []
+        mean, log_std = actor(obs, actor_hidden)
+        value = critic(obs, critic_hidden).squeeze(1)
+        losses, grad_mean, grad_log_std, grad_value = pb.ppo_loss_gradients(
+            mean, log_std, value, actions, old_logprob, adv, returns, old_value, args)
+        actor.backward(obs, actor_hidden, grad_mean, grad_log_std)
+        critic.backward(obs, critic_hidden, grad_value)
+    torch.testing.assert_close(losses["loss"], ref_loss.detach(), rtol=1e-5, atol=1e-6)
+    for p, ref in zip(params, ref_grads):
+        torch.testing.assert_close(p.grad, ref, rtol=1e-4, atol=1e-6)
+
+
+def test_shared_buffer_keeps_values_and_clipping_matches_torch():
+    actor, critic = pb.Actor(5, 2, 8), pb.make_critic(5)
+    params = [*actor.parameters(), *critic.parameters()]
+    before = [p.detach().clone() for p in params]
+    flat = pb.share_one_buffer(params)
+    for p, b in zip(params, before):
+        assert torch.equal(p, b)
+    g = torch.Generator().manual_seed(0)
+    flat.grad.copy_(torch.randn(flat.shape, generator=g))
+    reference_params = [torch.nn.Parameter(p.detach().clone()) for p in params]
+    for rp, p in zip(reference_params, params):
+        rp.grad = p.grad.clone()
+    torch.nn.utils.clip_grad_norm_(reference_params, 0.5)
+    pb.clip_grad_norm(flat, 0.5)
+    for p, rp in zip(params, reference_params):
+        torch.testing.assert_close(p.grad, rp.grad)
+    # an optimizer step on the buffer moves the named parameters
+    optimizer = pb.make_optimizer([flat], 1e-2)
+    optimizer.step()
+    assert not torch.equal(params[0], before[0])
