@@ -262,19 +262,21 @@ def orthogonal_linear(in_features: int, out_features: int, gain: float) -> tuple
     return weight.T.contiguous(), torch.zeros(1, out_features)
 
 
-def contributions(fallback: torch.Tensor) -> torch.Tensor:
+def contributions(fallback: torch.Tensor, with_later: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Share w_i of each base net in the ensemble output, from the fallbacks of nets 2..n.
 
     Unrolling C_i = l_i*C_{i-1} + (1-l_i)*b_i gives C_n = sum_i w_i*b_i with
     w_i = (1 - l_i) * prod_{j>i} l_j and l_1 := 0; w_1 = prod_{j>=2} l_j is the fallback product.
-    fallback: [n-1, B, 1] -> contributions [n, B, 1], summing to 1 over nets.
+    fallback: [n-1, B, 1] -> contributions [n, B, 1], summing to 1 over nets
+    (and with `with_later`, also later[i] = prod_{j>i} l_j = dC_n/dC_i, which the backward pass needs).
     """
     ones = fallback.new_ones((1, *fallback.shape[1:]))
     if len(fallback) == 0:
-        return ones  # a single net carries the whole output
+        return (ones, ones) if with_later else ones  # a single net carries the whole output
     # later[i] = prod_{j>i} l_j: a reverse cumulative product over the nets above net i
     later = torch.cat([fallback, ones]).flip(0).cumprod(0).flip(0)
-    return torch.cat([ones, torch.rsub(fallback, 1.0)]) * later  # rsub: 1 - l, minus Python's operator overhead
+    weight = torch.cat([ones, torch.rsub(fallback, 1.0)]) * later  # rsub: 1 - l, minus Python's operator overhead
+    return (weight, later) if with_later else weight
 
 
 class CascadeActor(nn.Module):
@@ -362,6 +364,7 @@ class CascadeActor(nn.Module):
         self.num_frozen = num_frozen
 
     def _register_freeze_hooks(self) -> None:
+        # training uses `backward` below; these hooks make autograd (e.g. plots/analyze.py) respect freezing too
         for _, param, first_net in self.base_net_parameters():
 
             def mask(grad: torch.Tensor, first_net: int = first_net) -> torch.Tensor:
@@ -374,18 +377,65 @@ class CascadeActor(nn.Module):
 
             param.register_hook(mask)
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """obs [B, obs_dim] -> mean [B, A], log-std [B, A], fallback [n-1, B], contribution [n, B]."""
+    def forward(self, obs: torch.Tensor, cache: dict | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """obs [B, obs_dim] -> mean [B, A], log-std [B, A], fallback [n-1, B], contribution [n, B].
+        With `cache`, keeps there what `backward` needs."""
         mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = self._heads
         hidden = obs.expand(len(log_stds), *obs.shape)  # every base net reads the same observation
+        activations = [hidden]
         for weight, bias in self._hidden:
             hidden = torch.tanh(torch.baddbmm(bias, hidden, weight))  # [n, B, H], all nets at once
+            activations.append(hidden)
         means = torch.baddbmm(mean_bias, hidden, mean_weight)  # [n, B, A]
         fallback = torch.sigmoid(torch.baddbmm(fallback_bias, hidden[1:], fallback_weight))  # [n-1, B, 1]
-        weight = contributions(fallback)  # [n, B, 1]
+        weight, later = contributions(fallback, with_later=True)  # [n, B, 1] each
         mean = (weight * means).sum(0)  # C_n = sum_i w_i b_i
         log_std = (weight * log_stds.unsqueeze(1)).sum(0)
+        if cache is not None:
+            cache.update(activations=activations, means=means, fallback=fallback, weight=weight, later=later)
         return mean, log_std, fallback.squeeze(-1), weight.squeeze(-1)
+
+    def backward(self, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
+        """Write every parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `forward(obs, cache)`.
+
+        Training computes its gradients by hand (autograd's per-op overhead dominates at these sizes);
+        tests/test_gradients.py checks this against autograd.
+        """
+        mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = self._heads
+        activations, means, fallback, weight, later = (
+            cache[key] for key in ("activations", "means", "fallback", "weight", "later"))
+        # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
+        grad_means = weight * grad_mean  # [n, B, A]
+        torch.sum(weight * grad_log_std, 1, out=log_stds.grad)
+        hidden = activations[-1]
+        torch.bmm(hidden.transpose(1, 2), grad_means, out=mean_weight.grad)
+        torch.sum(grad_means, 1, keepdim=True, out=mean_bias.grad)
+        grad_hidden = torch.bmm(grad_means, mean_weight.transpose(1, 2))  # [n, B, H]
+        if len(fallback):
+            # dC_n/dl_k = later_k * (C_{k-1} - b_k). Projected on the gradient g = (dL/dmean, dL/dlog_std):
+            # q_i = <g, b_i> and R_k = <g, C_k> follow the cascade's own recursion R_k = l_k R_{k-1} + (1-l_k) q_k.
+            q = (means * grad_mean).sum(-1) + log_stds @ grad_log_std.T  # [n, B]
+            partial = [q[0]]
+            for k in range(1, len(q)):
+                partial.append(torch.lerp(q[k], partial[-1], fallback[k - 1, :, 0]))  # lerp: (1-l) q + l R
+            grad_fallback = later[1:, :, 0] * (torch.stack(partial[:-1]) - q[1:])  # dL/dl_k, k = 2..n
+            grad_logit = (grad_fallback * fallback[:, :, 0] * (1.0 - fallback[:, :, 0])).unsqueeze(-1)  # sigmoid'
+            torch.bmm(hidden[1:].transpose(1, 2), grad_logit, out=fallback_weight.grad)
+            torch.sum(grad_logit, 1, keepdim=True, out=fallback_bias.grad)
+            grad_hidden[1:].baddbmm_(grad_logit, fallback_weight.transpose(1, 2))
+        for i in reversed(range(len(self._hidden))):
+            weight_i, bias_i = self._hidden[i]
+            below = activations[i]
+            grad_z = grad_hidden.mul_(1.0 - hidden * hidden)  # tanh' = 1 - tanh^2
+            torch.matmul(below.transpose(1, 2), grad_z, out=weight_i.grad)
+            torch.sum(grad_z, 1, keepdim=True, out=bias_i.grad)
+            if i:
+                grad_hidden = torch.bmm(grad_z, weight_i.transpose(1, 2))
+            hidden = below
+        if self.num_frozen:
+            for _, param, first_net in self.base_net_parameters():
+                param.grad[: max(self.num_frozen - first_net, 0)] = 0.0
 
     def member(self, obs: torch.Tensor, net: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and log-std of base net `net` (0-based) acting alone."""
@@ -396,34 +446,124 @@ class CascadeActor(nn.Module):
         return mean, self.log_std[net].expand_as(mean)
 
 
-def make_critic(obs_dim: int) -> nn.Sequential:
+class TanhMLP(nn.Module):
+    """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L, weights stored [in, out], orthogonal init (CleanRL)."""
+
+    def __init__(self, sizes: list[int], gains: list[float]):
+        super().__init__()
+        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
+        for d_in, d_out, gain in zip(sizes[:-1], sizes[1:], gains):
+            weight = torch.empty(d_out, d_in)
+            nn.init.orthogonal_(weight, gain)
+            self.weights.append(nn.Parameter(weight.T.contiguous()))
+            self.biases.append(nn.Parameter(torch.zeros(d_out)))
+
+    def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """Output [B, out]; appends each hidden activation to `hidden` when given (for `backward`)."""
+        *layers, (last_weight, last_bias) = zip(self.weights, self.biases)
+        for weight, bias in layers:
+            x = torch.tanh(torch.addmm(bias, x, weight))
+            if hidden is not None:
+                hidden.append(x)
+        return torch.addmm(last_bias, x, last_weight)
+
+    def backward(self, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
+        """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `forward(x, hidden)`."""
+        inputs = [x, *hidden]
+        for i in reversed(range(len(self.weights))):
+            torch.mm(inputs[i].T, grad_output, out=self.weights[i].grad)  # dL/dW = input^T dL/dz
+            torch.sum(grad_output, 0, out=self.biases[i].grad)
+            if i:  # dL/dz of the layer below: (dL/dz W^T) * tanh'(z), tanh' = 1 - tanh^2
+                grad_output = torch.mm(grad_output, self.weights[i].T).mul_(1.0 - inputs[i] * inputs[i])
+
+
+def make_critic(obs_dim: int) -> TanhMLP:
     """The PPO value net, obs -> 64 -> 64 -> 1 (tanh), recreated at every Cascade iteration."""
-
-    def layer(i: int, o: int, gain: float) -> nn.Linear:
-        linear = nn.Linear(i, o)
-        nn.init.orthogonal_(linear.weight, gain)
-        nn.init.zeros_(linear.bias)
-        return linear
-
-    return nn.Sequential(
-        layer(obs_dim, 64, math.sqrt(2)), nn.Tanh(), layer(64, 64, math.sqrt(2)), nn.Tanh(), layer(64, 1, 1.0)
-    )
+    return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
 
 
 def count_parameters(*modules: nn.Module) -> int:
     return sum(p.numel() for m in modules for p in m.parameters())
 
 
+def share_one_buffer(params: list[nn.Parameter]) -> nn.Parameter:
+    """Make every parameter, and its .grad, a view into one flat buffer; return that buffer as a Parameter.
+
+    The optimizer then updates a single tensor and the gradient norm is one reduction, instead of
+    one small op per parameter. Values are unchanged; the hand-written backward overwrites the .grad
+    views every minibatch (so there is no zero_grad)."""
+    flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
+    flat.grad = torch.zeros_like(flat)
+    offset = 0
+    for p in params:
+        p.data = flat.data[offset : offset + p.numel()].view_as(p)
+        p.grad = flat.grad[offset : offset + p.numel()].view_as(p)
+        offset += p.numel()
+    return flat
+
+
+def clip_grad_norm(flat: nn.Parameter, max_norm: float) -> None:
+    """torch.nn.utils.clip_grad_norm_ on the one gradient buffer: scale by min(1, max_norm / (norm + 1e-6))."""
+    flat.grad.mul_(torch.clamp(max_norm / (flat.grad.norm() + 1e-6), max=1.0))
+
+
 LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
-
-
-def gaussian_log_prob(action: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
-    """Sum over action dims of log Normal(action; mean, exp(log_std))."""
-    return (-0.5 * ((action - mean) * torch.exp(-log_std)) ** 2 - log_std - LOG_SQRT_2PI).sum(-1)
 
 
 def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
     return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
+
+
+def ppo_loss_gradients(
+    mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor, old_logprob: torch.Tensor,
+    advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor, args: Args,
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
+    """CleanRL's PPO loss on one minibatch, and its gradient w.r.t. the nets' outputs.
+
+    mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
+    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss terms and diagnostics as tensors.
+    """
+    batch = len(value)
+    # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
+    inv_std = torch.exp(-log_std)
+    u = (actions - mean) * inv_std
+    newlogprob = (-0.5 * u * u - log_std - LOG_SQRT_2PI).sum(1)
+    logratio = newlogprob - old_logprob
+    ratio = logratio.exp()
+    if args.norm_adv:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+    # Policy loss mean(max(-A r, -A clip(r, 1-eps, 1+eps))). Its gradient w.r.t. r is -A/B wherever
+    # the unclipped term is the max (inside the clip range both terms are equal: autograd's halves
+    # add up to the same) and 0 elsewhere; dr/dlogprob = r, so dL/dlogprob = (-A r)/B there.
+    pg_loss1 = -advantages * ratio
+    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+    grad_logprob = torch.where(pg_loss1 >= pg_loss2, pg_loss1, 0.0).div_(batch)[:, None]
+    # dlogprob/dmean = u / std, dlogprob/dlog_std = u^2 - 1
+    grad_mean = grad_logprob * u * inv_std
+    grad_log_std = grad_logprob * (u * u - 1.0)
+
+    # Value loss 0.5 mean(max((v - R)^2, (v_clip - R)^2)) with v_clip = v_old + clip(v - v_old, -eps, eps);
+    # the clipped branch passes a gradient only where v - v_old is inside the clip range.
+    if args.clip_vloss:
+        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
+        v_loss_unclipped, v_loss_clipped = (value - returns) ** 2, (v_clipped - returns) ** 2
+        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
+        inside = (value - old_value).abs() <= args.clip_coef
+        grad_v = torch.where(v_loss_unclipped >= v_loss_clipped, value - returns,
+                             torch.where(inside, v_clipped - returns, 0.0))
+    else:
+        v_loss = 0.5 * ((value - returns) ** 2).mean()
+        grad_v = value - returns
+    grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
+
+    loss = pg_loss + args.vf_coef * v_loss
+    if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
+        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
+        grad_log_std -= args.ent_coef / batch
+    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "logratio": logratio, "ratio": ratio}
+    return losses, grad_mean, grad_log_std, grad_value
 
 
 def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
@@ -643,7 +783,7 @@ def load_checkpoint(path: str) -> dict:
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
         fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "cascade_ppo_continuous/1":
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != "cascade_ppo_continuous/2":
         fail(f"{path} is not a cascade_ppo_continuous checkpoint")
     checkpoint["path"] = path
     return checkpoint
@@ -741,6 +881,7 @@ def set_rng_states(states: dict) -> None:
     random.setstate(states["python"])
 
 
+@torch.no_grad()  # gradients are written out by hand (ppo_loss_gradients, CascadeActor.backward): no autograd
 def train(args: Args, checkpoint: dict | None = None,
           on_iteration_start: Callable[[dict], None] | None = None) -> dict:
     """Runs Cascade (from scratch, or continuing `checkpoint`); returns the final actor, critic, run folder.
@@ -819,7 +960,7 @@ def train(args: Args, checkpoint: dict | None = None,
 
     def make_checkpoint(iteration: int, updates_done: int) -> dict:
         return {
-            "format": "cascade_ppo_continuous/1", "args": asdict(args), "obs_dim": obs_dim, "act_dim": act_dim,
+            "format": "cascade_ppo_continuous/2", "args": asdict(args), "obs_dim": obs_dim, "act_dim": act_dim,
             "iteration": iteration, "updates_done": updates_done, "global_step": global_step,
             "elapsed": time.time() - start_time,
             "actor": actor.state_dict(), "actor_size": actor.size, "num_frozen": actor.num_frozen,
@@ -859,7 +1000,8 @@ def train(args: Args, checkpoint: dict | None = None,
             critic = make_critic(obs_dim).to(device)
             torch.set_rng_state(rng)
             critic.load_state_dict(checkpoint["critic"])
-            optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
+            params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+            optimizer = make_optimizer([params], args.learning_rate)
             optimizer.load_state_dict(checkpoint["optimizer"])
         else:
             # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
@@ -868,9 +1010,9 @@ def train(args: Args, checkpoint: dict | None = None,
             if args.freeze_previous:
                 actor.freeze_below(actor.size - 1)
             critic = make_critic(obs_dim).to(device)
-            optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
+            params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+            optimizer = make_optimizer([params], args.learning_rate)
         size = actor.size
-        params = optimizer.param_groups[0]["params"]
         n_params = count_parameters(actor, critic)
         writer.add_scalar("cascade/size", size, global_step)
         writer.add_scalar("cascade/parameters", n_params, global_step)
@@ -896,9 +1038,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 global_step += args.num_envs
                 obs[step] = next_obs
                 dones[step] = next_done
-                with torch.inference_mode():
-                    mean, log_std, _, _ = actor(next_obs)
-                    action = mean + torch.exp(log_std) * noise[step]
+                mean, log_std, _, _ = actor(next_obs)
+                action = mean + torch.exp(log_std) * noise[step]
                 actions[step] = action
                 step_log_std[step] = log_std
 
@@ -916,12 +1057,11 @@ def train(args: Args, checkpoint: dict | None = None,
                     evaluate(global_step)
 
             b_obs = obs.reshape(-1, obs_dim)
-            with torch.no_grad():
-                # log N(mean + std*noise; mean, std) only depends on the noise and the log-std
-                b_logprobs = (-0.5 * noise.pow(2) - step_log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
-                values = critic(b_obs).reshape(args.num_steps, args.num_envs)
-                next_value = critic(next_obs).reshape(args.num_envs)
-                _, _, batch_fallback, batch_contribution = actor(b_obs)
+            # log N(mean + std*noise; mean, std) only depends on the noise and the log-std
+            b_logprobs = (-0.5 * noise.pow(2) - step_log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
+            values = critic(b_obs).reshape(args.num_steps, args.num_envs)
+            next_value = critic(next_obs).reshape(args.num_envs)
+            _, _, batch_fallback, batch_contribution = actor(b_obs)
             advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
                                      args.gamma, args.gae_lambda)
             b_advantages = torch.as_tensor(advantages, device=device).reshape(-1)
@@ -940,41 +1080,23 @@ def train(args: Args, checkpoint: dict | None = None,
                     minibatch = batch[b_inds[start : start + minibatch_size]]
                     mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
                     mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
-                    mean, log_std, _, _ = actor(mb_obs)
-                    newlogprob = gaussian_log_prob(mb_actions, mean, log_std)
-                    newvalue = critic(mb_obs).squeeze(-1)
-                    logratio = newlogprob - mb_logprobs
-                    ratio = logratio.exp()
-                    with torch.no_grad():
-                        clipfracs.append(((ratio - 1.0).abs() > args.clip_coef).float().mean())
+                    actor_cache, critic_hidden = {}, []
+                    mean, log_std, _, _ = actor(mb_obs, actor_cache)
+                    newvalue = critic(mb_obs, critic_hidden).squeeze(1)
+                    losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
+                        mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
+                    clipfracs.append(((losses["ratio"] - 1.0).abs() > args.clip_coef).float().mean())
 
-                    if args.norm_adv:
-                        mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
-                    pg_loss1 = -mb_advantages * ratio
-                    pg_loss2 = -mb_advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
-                    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
-
-                    if args.clip_vloss:
-                        v_loss_unclipped = (newvalue - mb_returns) ** 2
-                        v_clipped = mb_values + torch.clamp(newvalue - mb_values, -args.clip_coef, args.clip_coef)
-                        v_loss_clipped = (v_clipped - mb_returns) ** 2
-                        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
-                    else:
-                        v_loss = 0.5 * ((newvalue - mb_returns) ** 2).mean()
-
-                    loss = pg_loss + v_loss * args.vf_coef
-                    if args.ent_coef:  # with the default 0.0 the entropy term has no gradient: skip its graph
-                        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
-
-                    optimizer.zero_grad()
-                    loss.backward()
-                    nn.utils.clip_grad_norm_(params, args.max_grad_norm, foreach=True)
+                    actor.backward(actor_cache, grad_mean, grad_log_std)
+                    critic.backward(mb_obs, critic_hidden, grad_value)
+                    clip_grad_norm(params, args.max_grad_norm)
                     optimizer.step()
 
-                with torch.no_grad():  # CleanRL's diagnostics, from the epoch's last minibatch
-                    old_approx_kl = (-logratio).mean()
-                    approx_kl = ((ratio - 1) - logratio).mean()
-                    entropy_loss = gaussian_entropy(log_std).mean()
+                # CleanRL's diagnostics, from the epoch's last minibatch
+                logratio, ratio = losses["logratio"], losses["ratio"]
+                old_approx_kl = (-logratio).mean()
+                approx_kl = ((ratio - 1) - logratio).mean()
+                entropy_loss = gaussian_entropy(log_std).mean()
 
                 if args.target_kl is not None and approx_kl > args.target_kl:
                     break
@@ -985,8 +1107,8 @@ def train(args: Args, checkpoint: dict | None = None,
 
             # --- logging (CleanRL names + the fallback metrics of SPEC §6) ---
             writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
-            writer.add_scalar("losses/value_loss", v_loss.item(), global_step)
-            writer.add_scalar("losses/policy_loss", pg_loss.item(), global_step)
+            writer.add_scalar("losses/value_loss", losses["value_loss"].item(), global_step)
+            writer.add_scalar("losses/policy_loss", losses["policy_loss"].item(), global_step)
             writer.add_scalar("losses/entropy", entropy_loss.item(), global_step)
             writer.add_scalar("losses/old_approx_kl", old_approx_kl.item(), global_step)
             writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
@@ -1006,7 +1128,7 @@ def train(args: Args, checkpoint: dict | None = None,
             progress.update(global_step, sps, size)
 
             # --- non-finite guard: stop before anything bad is written to the checkpoint ---
-            if not math.isfinite(loss.item()) or not all(torch.isfinite(p).all() for p in params):
+            if not math.isfinite(losses["loss"].item()) or not torch.isfinite(params).all():
                 writer.close()
                 fail(f"non-finite loss or parameters at global_step={global_step} (iteration {iteration}, update "
                      f"{update}); the last good checkpoint {checkpoint_path} is intact")

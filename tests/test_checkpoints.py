@@ -42,7 +42,7 @@ def test_checkpoints_are_written_at_iteration_ends(finished_run):
 
 def test_crash_mid_write_leaves_previous_checkpoint_loadable(tmp_path, monkeypatch):
     path = str(tmp_path / "checkpoint.pt")
-    cpc.save_checkpoint(path, {"format": "cascade_ppo_continuous/1", "global_step": 1, "args": {}})
+    cpc.save_checkpoint(path, {"format": "cascade_ppo_continuous/2", "global_step": 1, "args": {}})
 
     def crash(obj, f):  # the process dies half way through writing the new file
         f.write(b"\x80\x02partial")
@@ -50,7 +50,7 @@ def test_crash_mid_write_leaves_previous_checkpoint_loadable(tmp_path, monkeypat
 
     monkeypatch.setattr(torch, "save", crash)
     with pytest.raises(KeyboardInterrupt):
-        cpc.save_checkpoint(path, {"format": "cascade_ppo_continuous/1", "global_step": 2, "args": {}})
+        cpc.save_checkpoint(path, {"format": "cascade_ppo_continuous/2", "global_step": 2, "args": {}})
     monkeypatch.undo()
     assert cpc.load_checkpoint(path)["global_step"] == 1
 
@@ -126,7 +126,7 @@ def test_nan_guard_stops_and_keeps_last_good_checkpoint(tmp_path):
     def poison(state):
         if state["iteration"] == 2:
             with torch.no_grad():
-                state["critic"][0].weight[0, 0] = float("nan")
+                state["critic"].weights[0][0, 0] = float("nan")
 
     args = cpc.Args(track_dir=str(tmp_path), checkpoint_every=0, **BASE)
     with pytest.raises(SystemExit) as stop:

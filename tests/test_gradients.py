@@ -4,7 +4,18 @@ import pytest
 import torch
 from torch.distributions import Normal
 
+import cascade_ppo_continuous as cpc
 import ppo_baseline as pb
+from test_cascade_net import make_actor, reference_forward
+
+
+@pytest.fixture(autouse=True)
+def float64():
+    """In double precision the hand-written and autograd gradients agree to ~1e-12, so a tight
+    tolerance catches even a small mistake in a rarely taken branch."""
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(torch.float32)
 
 
 def cleanrl_loss(mean, log_std, value, actions, old_logprob, advantages, returns, old_value, args):
@@ -78,9 +89,9 @@ def test_baseline_gradients_match_autograd(variant):
             mean, log_std, value, actions, old_logprob, adv, returns, old_value, args)
         actor.backward(obs, actor_hidden, grad_mean, grad_log_std)
         critic.backward(obs, critic_hidden, grad_value)
-    torch.testing.assert_close(losses["loss"], ref_loss.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(losses["loss"], ref_loss.detach(), rtol=1e-9, atol=1e-12)
     for p, ref in zip(params, ref_grads):
-        torch.testing.assert_close(p.grad, ref, rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(p.grad, ref, rtol=1e-9, atol=1e-12)
 
 
 def test_shared_buffer_keeps_values_and_clipping_matches_torch():
@@ -103,3 +114,40 @@ def test_shared_buffer_keeps_values_and_clipping_matches_torch():
     optimizer = pb.make_optimizer([flat], 1e-2)
     optimizer.step()
     assert not torch.equal(params[0], before[0])
+
+
+@pytest.mark.parametrize("n,layers,frozen,variant", [
+    (1, 2, 0, 0), (2, 2, 0, 0), (4, 1, 0, 1), (6, 2, 0, 0), (6, 2, 0, 3), (5, 3, 4, 0), (3, 2, 2, 2),
+])
+def test_cascade_gradients_match_autograd_through_the_plain_loop(n, layers, frozen, variant):
+    """CascadeActor.backward + ppo_loss_gradients against autograd through the net-by-net recursion."""
+    args = cpc.Args(**ARG_VARIANTS[variant])
+    actor = make_actor(n, layers=layers, seed=n)  # weights randomized away from the init
+    actor.freeze_below(frozen)
+    critic = cpc.make_critic(5)
+    randomize(critic, 3)
+    obs, actions, old_logprob, adv, returns, old_value = minibatch(
+        lambda x: reference_forward(actor, x), critic, 5, 3, seed=n)
+    params = [*actor.parameters(), *critic.parameters()]
+
+    mean, log_std, *_ = reference_forward(actor, obs)
+    ref_loss, ratio = cleanrl_loss(mean, log_std, critic(obs).squeeze(1), actions, old_logprob, adv, returns,
+                                   old_value, args)
+    grads = torch.autograd.grad(ref_loss, params, allow_unused=True)  # n = 1: the fallback head is empty
+    ref_grads = {p: torch.zeros_like(p) if g is None else g for p, g in zip(params, grads)}
+    for _, p, first_net in actor.base_net_parameters():  # frozen nets get no gradient
+        ref_grads[p][: max(frozen - first_net, 0)] = 0.0
+
+    flat = cpc.share_one_buffer(params)
+    flat.grad.fill_(float("nan"))  # every gradient entry must be written
+    with torch.no_grad():
+        cache, critic_hidden = {}, []
+        mean, log_std, _, _ = actor(obs, cache)
+        value = critic(obs, critic_hidden).squeeze(1)
+        losses, grad_mean, grad_log_std, grad_value = cpc.ppo_loss_gradients(
+            mean, log_std, value, actions, old_logprob, adv, returns, old_value, args)
+        actor.backward(cache, grad_mean, grad_log_std)
+        critic.backward(obs, critic_hidden, grad_value)
+    torch.testing.assert_close(losses["loss"], ref_loss.detach(), rtol=1e-9, atol=1e-12)
+    for p in params:
+        torch.testing.assert_close(p.grad, ref_grads[p], rtol=1e-9, atol=1e-12)
