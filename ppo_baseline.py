@@ -250,10 +250,20 @@ class TanhMLP(nn.Module):
             nn.init.orthogonal_(weight, gain)
             self.weights.append(nn.Parameter(weight.T.contiguous()))
             self.biases.append(nn.Parameter(torch.zeros(d_out)))
+        self._cache_layers()
+
+    def _cache_layers(self) -> None:
+        # plain references for the hot path (ParameterList access costs ~1 us per lookup)
+        self._layers = tuple(zip(self.weights, self.biases))
+
+    def _apply(self, fn, recurse=True):  # .to(device) and friends may swap the Parameters
+        module = super()._apply(fn, recurse)
+        self._cache_layers()
+        return module
 
     def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
         """Output [B, out]; appends each hidden activation to `hidden` when given (for `backward`)."""
-        *layers, (last_weight, last_bias) = zip(self.weights, self.biases)
+        *layers, (last_weight, last_bias) = self._layers
         for weight, bias in layers:
             x = torch.tanh(torch.addmm(bias, x, weight))
             if hidden is not None:
@@ -263,11 +273,13 @@ class TanhMLP(nn.Module):
     def backward(self, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
         """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `forward(x, hidden)`."""
         inputs = [x, *hidden]
-        for i in reversed(range(len(self.weights))):
-            torch.mm(inputs[i].T, grad_output, out=self.weights[i].grad)  # dL/dW = input^T dL/dz
-            torch.sum(grad_output, 0, out=self.biases[i].grad)
-            if i:  # dL/dz of the layer below: (dL/dz W^T) * tanh'(z), tanh' = 1 - tanh^2
-                grad_output = torch.mm(grad_output, self.weights[i].T).mul_(1.0 - inputs[i] * inputs[i])
+        for i in reversed(range(len(self._layers))):
+            weight, bias = self._layers[i]
+            torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
+            torch.sum(grad_output, 0, out=bias.grad)
+            if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2) = g - (g h) h, with g = dL/dz W^T
+                grad_h = torch.mm(grad_output, weight.T)
+                grad_output = grad_h.addcmul_(grad_h * inputs[i], inputs[i], value=-1.0)
 
 
 class Actor(nn.Module):
@@ -339,11 +351,13 @@ def ppo_loss_gradients(
     # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
     inv_std = torch.exp(-log_std)
     u = (actions - mean) * inv_std
-    newlogprob = (-0.5 * u * u - log_std - LOG_SQRT_2PI).sum(1)
+    u2 = u * u
+    newlogprob = (u2.mul(-0.5) - log_std).sum(1) - LOG_SQRT_2PI * u.shape[1]
     logratio = newlogprob - old_logprob
     ratio = logratio.exp()
     if args.norm_adv:
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        adv_std, adv_mean = torch.std_mean(advantages)
+        advantages = (advantages - adv_mean) / (adv_std + 1e-8)
 
     # Policy loss mean(max(-A r, -A clip(r, 1-eps, 1+eps))). Its gradient w.r.t. r is -A/B wherever
     # the unclipped term is the max (inside the clip range both terms are equal: autograd's halves
@@ -351,10 +365,10 @@ def ppo_loss_gradients(
     pg_loss1 = -advantages * ratio
     pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
     pg_loss = torch.max(pg_loss1, pg_loss2).mean()
-    grad_logprob = torch.where(pg_loss1 >= pg_loss2, pg_loss1, 0.0).div_(batch)[:, None]
+    grad_logprob = (pg_loss1 * (pg_loss1 >= pg_loss2)).div_(batch).unsqueeze(1)
     # dlogprob/dmean = u / std, dlogprob/dlog_std = u^2 - 1
     grad_mean = grad_logprob * u * inv_std
-    grad_log_std = grad_logprob * (u * u - 1.0)
+    grad_log_std = grad_logprob * u2 - grad_logprob
 
     # Value loss 0.5 mean(max((v - R)^2, (v_clip - R)^2)) with v_clip = v_old + clip(v - v_old, -eps, eps);
     # the clipped branch passes a gradient only where v - v_old is inside the clip range.
@@ -725,10 +739,9 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         runner.submit(step, actor, obs_statistics(envs))
         log_evaluations()
 
-    # Rollout storage, preallocated once (rewards and dones stay numpy: they come from the env as numpy)
+    # Rollout storage, preallocated once (actions, rewards and dones stay numpy: the env takes and gives numpy)
     obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
-    actions = torch.zeros((args.num_steps, args.num_envs, act_dim), device=device)
-    step_log_std = torch.zeros((args.num_steps, args.num_envs, act_dim), device=device)
+    actions = np.zeros((args.num_steps, args.num_envs, act_dim), dtype=np.float32)
     rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
     dones = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
 
@@ -782,11 +795,10 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             obs[step] = next_obs
             dones[step] = next_done
             mean, log_std = actor(next_obs)
-            action = mean + torch.exp(log_std) * noise[step]
+            action = torch.addcmul(mean, log_std.exp(), noise[step]).cpu().numpy()
             actions[step] = action
-            step_log_std[step] = log_std
 
-            next_obs_np, reward, terminations, truncations, infos = envs.step(action.cpu().numpy())
+            next_obs_np, reward, terminations, truncations, infos = envs.step(action)
             rewards[step] = reward
             next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
             next_done = np.logical_or(terminations, truncations).astype(np.float32)
@@ -801,7 +813,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
         b_obs = obs.reshape(-1, obs_dim)
         # log N(mean + std*noise; mean, std) only depends on the noise and the log-std
-        b_logprobs = (-0.5 * noise.pow(2) - step_log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
+        b_logprobs = (-0.5 * noise.pow(2) - actor.log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
         values = critic(b_obs).reshape(args.num_steps, args.num_envs)
         next_value = critic(next_obs).reshape(args.num_envs)
         advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
@@ -809,17 +821,17 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         b_advantages = torch.as_tensor(advantages, device=device).reshape(-1)
         b_values = values.reshape(-1)
         b_returns = b_advantages + b_values
-        b_actions = actions.reshape(-1, act_dim)
+        b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
 
         # --- PPO update ---
         # one [B, D] tensor holding all a minibatch needs, so each minibatch is a single gather
         batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
                            b_values[:, None]], dim=1)
-        clipfracs = []
+        ratios = []  # of every minibatch, for the clip fraction
         for _epoch in range(args.update_epochs):
             b_inds = torch.randperm(batch_size, device=device)
             for start in range(0, batch_size, minibatch_size):
-                minibatch = batch[b_inds[start : start + minibatch_size]]
+                minibatch = torch.index_select(batch, 0, b_inds[start : start + minibatch_size])
                 mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
                 mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
                 actor_hidden, critic_hidden = [], []
@@ -827,7 +839,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
                 newvalue = critic(mb_obs, critic_hidden).squeeze(1)
                 losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
                     mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
-                clipfracs.append(((losses["ratio"] - 1.0).abs() > args.clip_coef).float().mean())
+                ratios.append(losses["ratio"])
 
                 actor.backward(mb_obs, actor_hidden, grad_mean, grad_log_std)
                 critic.backward(mb_obs, critic_hidden, grad_value)
@@ -854,7 +866,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         writer.add_scalar("losses/entropy", entropy_loss.item(), global_step)
         writer.add_scalar("losses/old_approx_kl", old_approx_kl.item(), global_step)
         writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
-        writer.add_scalar("losses/clipfrac", torch.stack(clipfracs).mean().item(), global_step)
+        clipfrac = ((torch.cat(ratios) - 1.0).abs() > args.clip_coef).float().mean()
+        writer.add_scalar("losses/clipfrac", clipfrac.item(), global_step)
         writer.add_scalar("losses/explained_variance", explained_var, global_step)
         sps = global_step / (time.time() - start_time)
         writer.add_scalar("charts/SPS", int(sps), global_step)
