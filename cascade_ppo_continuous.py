@@ -717,9 +717,12 @@ class EvaluationRunner:
     def results(self, wait: bool = False) -> list[tuple]:
         """Finished evaluations (all outstanding ones with `wait`)."""
         while self.pending and (wait or self.conn.poll()):
-            if not self.process.is_alive() and not self.conn.poll():
+            try:
+                if not self.process.is_alive() and not self.conn.poll():
+                    raise EOFError
+                self.done.append(self.conn.recv())
+            except (EOFError, ConnectionError):  # it can also die while we wait on it
                 fail("the evaluation worker process died; rerun with --no-eval-in-worker to see why")
-            self.done.append(self.conn.recv())
             self.pending -= 1
         done, self.done = self.done, []
         return done

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 import cascade_ppo_continuous as cpc
+import ppo_baseline
 from helpers import error_line, only_run_dir, read_scalars, run_script
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
@@ -163,6 +164,17 @@ def test_cascade_learns_inverted_pendulum(tmp_path):
     args = cpc.Args(env_id="InvertedPendulum-v4", n=2, k=16384, eval_every=8192, eval_episodes=10,
                     track_dir=str(tmp_path), seed=1)
     result = cpc.train(args)
+    returns = read_scalars(result["run_dir"])["eval/episodic_return"]
+    first, last = returns[0][1], returns[-1][1]
+    assert returns[0][0] == 0
+    assert last > 5 * first and last > 100, returns
+
+
+@pytest.mark.slow
+def test_baseline_learns_inverted_pendulum(tmp_path):
+    args = ppo_baseline.Args(env_id="InvertedPendulum-v4", total_timesteps=32768, eval_every=8192, eval_episodes=10,
+                             track_dir=str(tmp_path), seed=1)
+    result = ppo_baseline.train(args)
     returns = read_scalars(result["run_dir"])["eval/episodic_return"]
     first, last = returns[0][1], returns[-1][1]
     assert returns[0][0] == 0
