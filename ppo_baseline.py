@@ -239,6 +239,23 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) 
 # tiny ops cost more than the math (SPEC-exact PPO, measured in benchmarks/throughput.py). So the
 # backward pass below is explicit: a few matmuls per layer, checked against autograd in
 # tests/test_gradients.py. To try another loss, change `ppo_loss_gradients` and run that test.
+def mlp_forward(layers: tuple, x, hidden: list | None = None):
+    """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L for `layers` ((W, b), ...); appends each hidden
+    activation to `hidden` when given. Runs on torch tensors (training) and numpy arrays (acting:
+    at batch size 1 numpy's per-call overhead is a third of torch's, and its smaller code path leaves
+    the simulator's own code in the CPU caches; see benchmarks/throughput.py)."""
+    *inner, (last_weight, last_bias) = layers
+    if isinstance(x, torch.Tensor):
+        for weight, bias in inner:
+            x = torch.tanh(torch.addmm(bias, x, weight))  # addmm: the affine map as one op
+            if hidden is not None:
+                hidden.append(x)
+        return torch.addmm(last_bias, x, last_weight)
+    for weight, bias in inner:
+        x = np.tanh(x @ weight + bias)
+    return x @ last_weight + last_bias
+
+
 class TanhMLP(nn.Module):
     """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L, weights stored [in, out], orthogonal init (CleanRL)."""
 
@@ -263,12 +280,7 @@ class TanhMLP(nn.Module):
 
     def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
         """Output [B, out]; appends each hidden activation to `hidden` when given (for `backward`)."""
-        *layers, (last_weight, last_bias) = self._layers
-        for weight, bias in layers:
-            x = torch.tanh(torch.addmm(bias, x, weight))
-            if hidden is not None:
-                hidden.append(x)
-        return torch.addmm(last_bias, x, last_weight)
+        return mlp_forward(self._layers, x, hidden)
 
     def backward(self, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
         """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `forward(x, hidden)`."""
@@ -293,6 +305,14 @@ class Actor(nn.Module):
     def forward(self, obs: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         mean = self.mean_net(obs, hidden)
         return mean, self.log_std.expand_as(mean)
+
+    def numpy_policy(self) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """obs [B, obs_dim] (float32 numpy) -> mean [B, A], log-std [1, A], computed on numpy copies of the
+        current weights: for acting during a rollout (the copies do not follow later updates)."""
+        layers = tuple((w.detach().cpu().numpy().copy(), b.detach().cpu().numpy().copy())
+                       for w, b in self.mean_net._layers)
+        log_std = self.log_std.detach().cpu().numpy().copy()
+        return lambda obs: (mlp_forward(layers, obs), log_std)
 
     def backward(self, obs: torch.Tensor, hidden: list[torch.Tensor], grad_mean: torch.Tensor,
                  grad_log_std: torch.Tensor) -> None:
@@ -742,8 +762,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         runner.submit(step, actor, obs_statistics(envs))
         log_evaluations()
 
-    # Rollout storage, preallocated once (actions, rewards and dones stay numpy: the env takes and gives numpy)
-    obs = torch.zeros((args.num_steps, args.num_envs, obs_dim), device=device)
+    # Rollout storage, preallocated once, numpy: acting runs in numpy and the env takes and gives numpy
+    obs = np.zeros((args.num_steps, args.num_envs, obs_dim), dtype=np.float32)
     actions = np.zeros((args.num_steps, args.num_envs, act_dim), dtype=np.float32)
     rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
     dones = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
@@ -754,15 +774,14 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             "updates_done": updates_done, "global_step": global_step, "elapsed": time.time() - start_time,
             "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
             "obs_stats": obs_statistics(envs), "env_states": envs.call("get_state"),
-            "next_obs": next_obs.cpu(), "next_done": next_done.copy(), "rng": rng_states(),
+            "next_obs": next_obs.copy(), "next_done": next_done.copy(), "rng": rng_states(),
             "eval_calls": 0 if runner is None else runner.calls,
         }
 
     if checkpoint is None:
         global_step, start_update = 0, 1
         start_time = time.time()
-        next_obs_np, _ = envs.reset(seed=args.seed)
-        next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+        next_obs = envs.reset(seed=args.seed)[0].astype(np.float32)
         next_done = np.zeros(args.num_envs, dtype=np.float32)
         if runner is not None:
             evaluate(0)
@@ -772,7 +791,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         start_time = time.time() - checkpoint["elapsed"]
         envs.reset(seed=args.seed)  # sets up the vector env; then every env gets its saved state back
         envs.call("set_state", checkpoint["env_states"])
-        next_obs = checkpoint["next_obs"].to(device)
+        next_obs = np.asarray(checkpoint["next_obs"], dtype=np.float32)
         next_done = checkpoint["next_done"]
         actor.load_state_dict(checkpoint["actor"])
         critic.load_state_dict(checkpoint["critic"])
@@ -792,18 +811,20 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
         # --- rollout: only the actor runs per step. The nets do not change during a rollout, so
         # values and log-probs are computed for the whole batch afterwards. ---
-        noise = torch.randn((args.num_steps, args.num_envs, act_dim), device=device)
+        policy = actor.numpy_policy()  # the weights do not change during a rollout
+        noise = torch.randn((args.num_steps, args.num_envs, act_dim))  # torch's RNG stream, used from numpy
+        noise_np = noise.numpy()
         for step in range(args.num_steps):
             global_step += args.num_envs
             obs[step] = next_obs
             dones[step] = next_done
-            mean, log_std = actor(next_obs)
-            action = torch.addcmul(mean, log_std.exp(), noise[step]).cpu().numpy()
+            mean, log_std = policy(next_obs)
+            action = mean + np.exp(log_std) * noise_np[step]
             actions[step] = action
 
-            next_obs_np, reward, terminations, truncations, infos = envs.step(action)
+            next_obs, reward, terminations, truncations, infos = envs.step(action)
             rewards[step] = reward
-            next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
+            next_obs = next_obs.astype(np.float32)
             next_done = np.logical_or(terminations, truncations).astype(np.float32)
             if "final_info" in infos and "episode" in infos["final_info"]:
                 finished = infos["final_info"]["_episode"]
@@ -814,11 +835,11 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             if runner is not None and global_step % args.eval_every < args.num_envs:
                 evaluate(global_step)
 
-        b_obs = obs.reshape(-1, obs_dim)
+        b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
         # log N(mean + std*noise; mean, std) only depends on the noise and the log-std
-        b_logprobs = (-0.5 * noise.pow(2) - actor.log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
+        b_logprobs = (-0.5 * noise.to(device).pow(2) - actor.log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
         values = critic(b_obs).reshape(args.num_steps, args.num_envs)
-        next_value = critic(next_obs).reshape(args.num_envs)
+        next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)
         advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
                                  args.gamma, args.gae_lambda)
         b_advantages = torch.as_tensor(advantages, device=device).reshape(-1)

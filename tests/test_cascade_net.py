@@ -214,3 +214,36 @@ def test_gae_matches_cleanrl_tensor_loop():
         last = delta + 0.99 * 0.95 * nonterminal * last
         advantages[t] = last
     np.testing.assert_allclose(got, advantages.numpy(), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("n", [1, 2, 6])
+def test_numpy_policy_used_for_acting_matches_the_torch_forward(n):
+    actor = make_actor(n, seed=n)
+    obs = torch.randn(4, 5)
+    with torch.no_grad():
+        mean, log_std, _, _ = actor(obs)
+    np_mean, np_log_std = actor.numpy_policy()(obs.numpy())
+    assert np_mean.dtype == np.float32 and np_log_std.dtype == np.float32
+    np.testing.assert_allclose(np_mean, mean.numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np_log_std, log_std.numpy(), rtol=1e-5, atol=1e-6)
+    # a saturated fallback (sigmoid of a very negative logit) stays finite and silent in numpy
+    with torch.no_grad():
+        if n > 1:
+            actor.fallback_bias[-1] = -1e4
+    with np.errstate(over="raise", invalid="raise", divide="raise"):  # underflow to 0 is expected
+        np_mean, _ = actor.numpy_policy()(obs.numpy())
+    with torch.no_grad():
+        torch.testing.assert_close(torch.from_numpy(np_mean), actor(obs)[0], rtol=1e-5, atol=1e-6)
+
+
+def test_baseline_numpy_policy_matches_the_torch_forward():
+    torch.manual_seed(0)
+    actor = ppo_baseline.Actor(5, 3, 16)
+    with torch.no_grad():
+        for p in actor.parameters():
+            p.normal_(0.0, 0.5)
+        obs = torch.randn(4, 5)
+        mean, log_std = actor(obs)
+    np_mean, np_log_std = actor.numpy_policy()(obs.numpy())
+    np.testing.assert_allclose(np_mean, mean.numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.broadcast_to(np_log_std, np_mean.shape), log_std.detach().numpy())
