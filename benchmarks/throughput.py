@@ -155,6 +155,16 @@ def main() -> None:
         r = summary[c]
         print(f"| {CONFIGS[c]} | {r['sps']:.0f} | {r['vs_limit']:.2f} | {r['vs_ppo']:.2f} | {r['peak_rss_mb']:.0f} |")
     print(f"\nwall-clock with evaluation / without: {summary['eval_wallclock_ratio']:.2f}x")
+    print("\ntargets (issue 4):")
+    checks = [
+        ("PPO >= 0.5x the env limit", summary["ppo"]["vs_limit"], 0.5, ">="),
+        ("Cascade (6 nets) >= 0.9x PPO", summary["cascade6"]["vs_ppo"], 0.9, ">="),
+        ("wall-clock with evaluation <= 1.25x without", summary["eval_wallclock_ratio"], 1.25, "<="),
+        ("peak memory of Cascade <= 600 MB", summary["cascade6"]["peak_rss_mb"], 600, "<="),
+    ]
+    for name, value, bound, op in checks:
+        met = value >= bound if op == ">=" else value <= bound
+        print(f"  {'met    ' if met else 'NOT met'}  {name}: {value:.2f}")
 
 
 if __name__ == "__main__":
