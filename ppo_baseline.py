@@ -365,7 +365,7 @@ def ppo_loss_gradients(
     """CleanRL's PPO loss on one minibatch, and its gradient w.r.t. the nets' outputs.
 
     mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
-    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss terms and diagnostics as tensors.
+    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss terms, log-ratio and ratio.
     """
     batch = len(value)
     # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
