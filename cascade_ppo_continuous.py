@@ -270,7 +270,8 @@ def stacked_affine(x, weight, bias):
     """x @ weight + bias for every base net at once: x [B, in] (shared) or [n, B, in], weight [n, in, out],
     bias [n, 1, out] -> [n, B, out]."""
     if isinstance(x, torch.Tensor):
-        return torch.baddbmm(bias, x.expand(weight.shape[0], *x.shape[-2:]), weight)  # one fused op
+        x = x if x.dim() == 3 else x.expand(weight.shape[0], *x.shape)
+        return torch.baddbmm(bias, x, weight)  # one fused op
     return x @ weight + bias
 
 
@@ -290,11 +291,14 @@ def contributions(fallback, with_later: bool = False):
     Works on torch tensors and numpy arrays alike.
     """
     shape = (1, *fallback.shape[1:])
-    xp, ones = (torch, fallback.new_ones(shape)) if isinstance(fallback, torch.Tensor) else (np, np.ones(shape, fallback.dtype))
+    if isinstance(fallback, torch.Tensor):
+        xp, ones, flip = torch, fallback.new_ones(shape), lambda a: a.flip(0)
+    else:  # a reversed view; np.flip costs ten times as much at these sizes
+        xp, ones, flip = np, np.ones(shape, fallback.dtype), lambda a: a[::-1]
     if fallback.shape[0] == 0:
         return (ones, ones) if with_later else ones  # a single net carries the whole output
     # later[i] = prod_{j>i} l_j: a reverse cumulative product over the nets above net i
-    later = xp.flip(xp.cumprod(xp.flip(xp.concatenate([fallback, ones]), (0,)), 0), (0,))
+    later = flip(xp.cumprod(flip(xp.concatenate([fallback, ones])), 0))
     weight = xp.concatenate([ones, 1.0 - fallback]) * later
     return (weight, later) if with_later else weight
 
@@ -442,7 +446,7 @@ class CascadeActor(nn.Module):
             cache[key] for key in ("activations", "means", "fallback", "weight", "later"))
         # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
         grad_means = weight * grad_mean  # [n, B, A]
-        torch.sum(weight * grad_log_std, 1, out=log_stds.grad)
+        torch.mm(weight[..., 0], grad_log_std, out=log_stds.grad)  # sum over the batch of w_i dL/dlog_std
         hidden = activations[-1]
         torch.bmm(hidden.transpose(1, 2), grad_means, out=mean_weight.grad)
         torch.sum(grad_means, 1, keepdim=True, out=mean_bias.grad)

@@ -247,3 +247,14 @@ def test_baseline_numpy_policy_matches_the_torch_forward():
     np_mean, np_log_std = actor.numpy_policy()(obs.numpy())
     np.testing.assert_allclose(np_mean, mean.numpy(), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(np.broadcast_to(np_log_std, np_mean.shape), log_std.detach().numpy())
+
+
+def test_empty_stack_acts_with_zero_mean_and_unit_std():
+    """Step 0 is evaluated before net 1 exists: the empty ensemble is N(0, 1), in torch and numpy."""
+    actor = cpc.CascadeActor(5, 3, 7, 2, 0.5)
+    obs = torch.randn(4, 5)
+    with torch.no_grad():
+        mean, log_std, fallback, weight = actor(obs)
+    assert torch.equal(mean, torch.zeros(4, 3)) and torch.equal(log_std, torch.zeros(4, 3))
+    np_mean, np_log_std = actor.numpy_policy()(obs.numpy())
+    assert (np_mean == 0).all() and (np_log_std == 0).all() and np_mean.shape == (4, 3)
