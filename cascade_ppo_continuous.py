@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import collections
 import copy
+import functools
 import math
 import os
 import pickle
@@ -262,66 +263,84 @@ def orthogonal_linear(in_features: int, out_features: int, gain: float) -> tuple
     return weight.T.contiguous(), torch.zeros(1, out_features)
 
 
-# The forward pass below runs on torch tensors (training, evaluation) and, unchanged, on numpy copies
-# of the weights: acting uses those during a rollout, while the weights stay fixed. At batch size 1
-# numpy's per-call overhead is a third of torch's, and the smaller code path leaves the simulator's
-# own code in the CPU caches (measured on Ant-v4: the env step itself is 13% faster; benchmarks/throughput.py).
-def stacked_affine(x, weight, bias):
+def stacked_affine(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     """x @ weight + bias for every base net at once: x [B, in] (shared) or [n, B, in], weight [n, in, out],
     bias [n, 1, out] -> [n, B, out]."""
-    if isinstance(x, torch.Tensor):
-        x = x if x.dim() == 3 else x.expand(weight.shape[0], *x.shape)
-        return torch.baddbmm(bias, x, weight)  # one fused op
-    return x @ weight + bias
+    x = x if x.dim() == 3 else x.expand(weight.shape[0], *x.shape)
+    return torch.baddbmm(bias, x, weight)  # one fused op
 
 
-def sigmoid(z):
-    if isinstance(z, torch.Tensor):
-        return torch.sigmoid(z)
-    return np.exp(-np.logaddexp(0.0, -z))  # 1 / (1 + e^-z), without overflow for very negative z
+@functools.lru_cache
+def log_contribution_matrix(n: int, dtype: torch.dtype = torch.float32, device: str = "cpu") -> torch.Tensor:
+    """M [n, 2(n-1)] that maps (log l_2..log l_n, log(1-l_2)..log(1-l_n)) to log w_1..log w_n: row i holds
+    a 1 for log(1 - l_i) (not for net 1, whose l_1 := 0) and for every log l_j with j > i."""
+    matrix = torch.zeros(n, 2, max(n - 1, 0), dtype=dtype, device=device)
+    for i in range(n):
+        matrix[i, 0, i:] = 1.0  # log l_j for j > i (column k is net k + 2)
+        if i:
+            matrix[i, 1, i - 1] = 1.0  # log(1 - l_i)
+    return matrix.reshape(n, -1)
 
 
-def contributions(fallback, with_later: bool = False):
-    """Share w_i of each base net in the ensemble output, from the fallbacks of nets 2..n.
+def contributions(fallback_logit: torch.Tensor) -> torch.Tensor:
+    """Share w_i of each base net in the ensemble output, from the fallback logits z [n-1, B] of nets 2..n.
 
     Unrolling C_i = l_i*C_{i-1} + (1-l_i)*b_i gives C_n = sum_i w_i*b_i with
     w_i = (1 - l_i) * prod_{j>i} l_j and l_1 := 0; w_1 = prod_{j>=2} l_j is the fallback product.
-    fallback: [n-1, B, 1] -> contributions [n, B, 1], summing to 1 over nets
-    (and with `with_later`, also later[i] = prod_{j>i} l_j = dC_n/dC_i, which the backward pass needs).
-    Works on torch tensors and numpy arrays alike.
+    With l = sigmoid(z), log l = logsigmoid(z) and log(1 - l) = logsigmoid(-z), so every log w_i is a sum
+    of these: one matmul (`log_contribution_matrix`), in log space so that no product underflows.
+    Returns w [n, B], summing to 1 over nets.
     """
-    shape = (1, *fallback.shape[1:])
-    if isinstance(fallback, torch.Tensor):
-        xp, ones, flip = torch, fallback.new_ones(shape), lambda a: a.flip(0)
-    else:  # a reversed view; np.flip costs ten times as much at these sizes
-        xp, ones, flip = np, np.ones(shape, fallback.dtype), lambda a: a[::-1]
-    if fallback.shape[0] == 0:
-        return (ones, ones) if with_later else ones  # a single net carries the whole output
-    # later[i] = prod_{j>i} l_j: a reverse cumulative product over the nets above net i
-    later = flip(xp.cumprod(flip(xp.concatenate([fallback, ones])), 0))
-    weight = xp.concatenate([ones, 1.0 - fallback]) * later
-    return (weight, later) if with_later else weight
+    matrix = log_contribution_matrix(fallback_logit.shape[0] + 1, fallback_logit.dtype, str(fallback_logit.device))
+    log_sigmoids = nn.functional.logsigmoid(torch.cat([fallback_logit, -fallback_logit]))  # [2(n-1), B]
+    return torch.exp(matrix @ log_sigmoids)
 
 
-def cascade_forward(hidden_layers: tuple, heads: tuple, obs, cache: dict | None = None) -> tuple:
+def cascade_forward(hidden_layers: tuple, heads: tuple, obs: torch.Tensor, cache: dict | None = None) -> tuple:
     """obs [B, obs_dim] -> mean [B, A], log-std [B, A], fallback [n-1, B], contribution [n, B] of the
-    stacked base nets (`CascadeActor` holds the weights). With `cache` (torch only), keeps there what
+    stacked base nets (`CascadeActor` holds the weights). With `cache`, keeps there what
     `CascadeActor.backward` needs."""
     mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = heads
-    tanh = torch.tanh if isinstance(obs, torch.Tensor) else np.tanh
+    if mean_weight.shape[0] == 0:  # the empty stack (evaluated at step 0, before net 1 exists): N(0, 1)
+        zeros = obs.new_zeros(obs.shape[0], mean_weight.shape[-1])
+        return zeros, zeros, obs.new_zeros(0, obs.shape[0]), obs.new_zeros(0, obs.shape[0])
     hidden = obs  # every base net reads the same observation
     activations = [hidden]
     for weight, bias in hidden_layers:
-        hidden = tanh(stacked_affine(hidden, weight, bias))  # [n, B, H], all nets at once
+        hidden = torch.tanh(stacked_affine(hidden, weight, bias))  # [n, B, H], all nets at once
         activations.append(hidden)
     means = stacked_affine(hidden, mean_weight, mean_bias)  # [n, B, A]
-    fallback = sigmoid(stacked_affine(hidden[1:], fallback_weight, fallback_bias))  # [n-1, B, 1]
-    weight, later = contributions(fallback, with_later=True)  # [n, B, 1] each
-    mean = (weight * means).sum(0)  # C_n = sum_i w_i b_i
-    log_std = (weight * log_stds[:, None]).sum(0)
+    fallback_logit = stacked_affine(hidden[1:], fallback_weight, fallback_bias)[..., 0]  # [n-1, B]
+    fallback = torch.sigmoid(fallback_logit)
+    weight = contributions(fallback_logit)  # [n, B]
+    mean = (weight[..., None] * means).sum(0)  # C_n = sum_i w_i b_i
+    log_std = torch.mm(weight.T, log_stds)  # the same sum for the per-net log-std vectors
     if cache is not None:
-        cache.update(activations=activations, means=means, fallback=fallback, weight=weight, later=later)
-    return mean, log_std, fallback[..., 0], weight[..., 0]
+        cache.update(activations=activations, means=means, fallback=fallback, weight=weight)
+    return mean, log_std, fallback, weight
+
+
+# Acting during a rollout runs in numpy on copies of the weights (they do not change within a
+# rollout). At batch size 1 every numpy call costs about a microsecond and the nets' arithmetic is
+# negligible, so this forward is arranged for few calls: the mean and fallback heads are one matmul,
+# followed by the log-space contributions. Fewer calls also leave the simulator's own code in the CPU
+# caches: on Ant-v4 this cut the in-loop cost of acting from ~44 to ~21 us per step
+# (benchmarks/throughput.py). The tests check it against `cascade_forward`.
+def numpy_acting_forward(hidden_layers: tuple, head_weight: np.ndarray, head_bias: np.ndarray,
+                         neg_log_contribution: np.ndarray, log_stds: np.ndarray, obs: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """obs [B, obs_dim] -> mean, log-std [B, A] of the ensemble, as `cascade_forward`. head_weight [n, H, A+2]
+    holds each net's mean head and its fallback logit as the two columns -z, z (zeros for net 1)."""
+    hidden = obs
+    for weight, bias in hidden_layers:
+        hidden = np.tanh(hidden @ weight + bias)  # [n, B, H]
+    heads = hidden @ head_weight + head_bias  # [n, B, A+2]
+    act_dim = heads.shape[-1] - 2
+    # softplus(-z) = -log l, softplus(z) = -log(1 - l), arranged as [2(n-1), B] like `contributions`
+    softplus = np.logaddexp(0.0, heads[1:, :, act_dim:].transpose(2, 0, 1)).reshape(-1, obs.shape[0])
+    weight = np.exp(neg_log_contribution @ softplus)  # w [n, B]
+    mean = np.matmul(weight.T[:, None, :], heads[..., :act_dim].transpose(1, 0, 2))[:, 0]  # sum_i w_i b_i
+    return mean, weight.T @ log_stds
 
 
 class CascadeActor(nn.Module):
@@ -435,9 +454,19 @@ class CascadeActor(nn.Module):
     def numpy_policy(self) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """obs [B, obs_dim] (float32 numpy) -> ensemble mean, log-std, computed on numpy copies of the
         current weights: for acting during a rollout (the copies do not follow later updates)."""
+        n, act_dim = self.size, self.act_dim
+        if n == 0:  # the empty stack (step-0 evaluation): N(0, 1)
+            return lambda obs: (np.zeros((len(obs), act_dim), np.float32),) * 2
+        mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = (
+            t.detach().cpu().numpy() for t in self._heads)
         hidden = tuple((w.detach().cpu().numpy().copy(), b.detach().cpu().numpy().copy()) for w, b in self._hidden)
-        heads = tuple(t.detach().cpu().numpy().copy() for t in self._heads)
-        return lambda obs: cascade_forward(hidden, heads, obs)[:2]
+        head_weight = np.zeros((n, self.hidden_size, act_dim + 2), np.float32)
+        head_bias = np.zeros((n, 1, act_dim + 2), np.float32)
+        head_weight[..., :act_dim], head_bias[..., :act_dim] = mean_weight, mean_bias
+        sign = np.array([-1.0, 1.0], np.float32)  # the columns -z, z
+        head_weight[1:, :, act_dim:], head_bias[1:, :, act_dim:] = fallback_weight * sign, fallback_bias * sign
+        neg_log_contribution, log_stds = -log_contribution_matrix(n).numpy(), log_stds.copy()
+        return lambda obs: numpy_acting_forward(hidden, head_weight, head_bias, neg_log_contribution, log_stds, obs)
 
     def backward(self, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
         """Write every parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `forward(obs, cache)`.
@@ -446,26 +475,22 @@ class CascadeActor(nn.Module):
         tests/test_gradients.py checks this against autograd.
         """
         mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = self._heads
-        activations, means, fallback, weight, later = (
-            cache[key] for key in ("activations", "means", "fallback", "weight", "later"))
+        activations, means, fallback, weight = (cache[key] for key in ("activations", "means", "fallback", "weight"))
         # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
-        grad_means = weight * grad_mean  # [n, B, A]
-        torch.mm(weight[..., 0], grad_log_std, out=log_stds.grad)  # sum over the batch of w_i dL/dlog_std
+        grad_means = weight[..., None] * grad_mean  # [n, B, A]
+        torch.mm(weight, grad_log_std, out=log_stds.grad)  # sum over the batch of w_i dL/dlog_std
         hidden = activations[-1]
         torch.bmm(hidden.transpose(1, 2), grad_means, out=mean_weight.grad)
         torch.sum(grad_means, 1, keepdim=True, out=mean_bias.grad)
         grad_hidden = torch.bmm(grad_means, mean_weight.transpose(1, 2))  # [n, B, H]
         if fallback.shape[0]:
-            # dC_n/dl_k = later_k * (C_{k-1} - b_k). Projected on the gradient g = (dL/dmean, dL/dlog_std):
-            # q_i = <g, b_i> and R_k = <g, C_k> follow the cascade's own recursion R_k = l_k R_{k-1} + (1-l_k) q_k.
-            q = (means * grad_mean).sum(-1) + log_stds @ grad_log_std.T  # [n, B]
-            lam = fallback.squeeze(-1)
-            partial = [q[0]]
-            for q_k, lam_k in zip(q[1:].unbind(0), lam.unbind(0)):
-                partial.append(torch.lerp(q_k, partial[-1], lam_k))  # lerp: (1-l) q + l R
-            grad_fallback = later[1:].squeeze(-1) * (torch.stack(partial[:-1]) - q[1:])  # dL/dl_k, k = 2..n
-            grad_fallback = grad_fallback * lam
-            grad_logit = grad_fallback.addcmul_(grad_fallback, lam, value=-1.0).unsqueeze(-1)  # sigmoid' = l (1 - l)
+            # Fallback k (net k >= 2) acts through C_k = l_k C_{k-1} + (1 - l_k) b_k, and C_n changes by
+            # later_k = prod_{j>k} l_j per unit of C_k, so with g = (dL/dmean, dL/dlog_std) and z_k = logit(l_k):
+            #   dL/dz_k = l_k (1 - l_k) later_k <g, C_{k-1} - b_k> = S_{k-1} - l_k S_k,
+            # where S_k = sum_{i<=k} w_i <g, b_i> = later_k <g, C_k> (a cumulative sum, no division).
+            weighted_q = torch.addcmul((grad_means * means).sum(-1), weight, log_stds @ grad_log_std.T)  # [n, B]
+            partial_sums = weighted_q.cumsum_(0)  # S_1..S_n
+            grad_logit = torch.addcmul(partial_sums[:-1], fallback, partial_sums[1:], value=-1.0).unsqueeze(-1)
             torch.bmm(hidden[1:].transpose(1, 2), grad_logit, out=fallback_weight.grad)
             torch.sum(grad_logit, 1, keepdim=True, out=fallback_bias.grad)
             grad_hidden[1:].baddbmm_(grad_logit, fallback_weight.transpose(1, 2))
@@ -1135,32 +1160,34 @@ def train(args: Args, checkpoint: dict | None = None,
             batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
                                b_values[:, None]], dim=1)
             ratios = []  # of every minibatch, for the clip fraction
-            for _epoch in range(args.update_epochs):
-                b_inds = torch.randperm(batch_size, device=device)
-                for start in range(0, batch_size, minibatch_size):
-                    minibatch = torch.index_select(batch, 0, b_inds[start : start + minibatch_size])
-                    mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
-                    mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
-                    actor_cache, critic_hidden = {}, []
-                    mean, log_std, _, _ = actor(mb_obs, actor_cache)
-                    newvalue = critic(mb_obs, critic_hidden).squeeze(1)
-                    losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
-                        mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
-                    ratios.append(losses["ratio"])
+            # inference mode skips even the autograd bookkeeping that no_grad still does (~15% per op here)
+            with torch.inference_mode():
+                for _epoch in range(args.update_epochs):
+                    b_inds = torch.randperm(batch_size, device=device)
+                    for start in range(0, batch_size, minibatch_size):
+                        minibatch = torch.index_select(batch, 0, b_inds[start : start + minibatch_size])
+                        mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
+                        mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
+                        actor_cache, critic_hidden = {}, []
+                        mean, log_std, _, _ = actor(mb_obs, actor_cache)
+                        newvalue = critic(mb_obs, critic_hidden).squeeze(1)
+                        losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
+                            mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
+                        ratios.append(losses["ratio"])
 
-                    actor.backward(actor_cache, grad_mean, grad_log_std)
-                    critic.backward(mb_obs, critic_hidden, grad_value)
-                    clip_grad_norm(params, args.max_grad_norm)
-                    optimizer.step()
+                        actor.backward(actor_cache, grad_mean, grad_log_std)
+                        critic.backward(mb_obs, critic_hidden, grad_value)
+                        clip_grad_norm(params, args.max_grad_norm)
+                        optimizer.step()
 
-                # CleanRL's diagnostics, from the epoch's last minibatch
-                logratio, ratio = losses["logratio"], losses["ratio"]
-                old_approx_kl = (-logratio).mean()
-                approx_kl = ((ratio - 1) - logratio).mean()
-                entropy_loss = gaussian_entropy(log_std).mean()
+                    # CleanRL's diagnostics, from the epoch's last minibatch
+                    logratio, ratio = losses["logratio"], losses["ratio"]
+                    old_approx_kl = (-logratio).mean()
+                    approx_kl = ((ratio - 1) - logratio).mean()
+                    entropy_loss = gaussian_entropy(log_std).mean()
 
-                if args.target_kl is not None and approx_kl > args.target_kl:
-                    break
+                    if args.target_kl is not None and approx_kl > args.target_kl:
+                        break
 
             y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
             var_y = np.var(y_true)

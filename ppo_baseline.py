@@ -852,32 +852,34 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
                            b_values[:, None]], dim=1)
         ratios = []  # of every minibatch, for the clip fraction
-        for _epoch in range(args.update_epochs):
-            b_inds = torch.randperm(batch_size, device=device)
-            for start in range(0, batch_size, minibatch_size):
-                minibatch = torch.index_select(batch, 0, b_inds[start : start + minibatch_size])
-                mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
-                mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
-                actor_hidden, critic_hidden = [], []
-                mean, log_std = actor(mb_obs, actor_hidden)
-                newvalue = critic(mb_obs, critic_hidden).squeeze(1)
-                losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
-                    mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
-                ratios.append(losses["ratio"])
+        # inference mode skips even the autograd bookkeeping that no_grad still does (~15% per op here)
+        with torch.inference_mode():
+            for _epoch in range(args.update_epochs):
+                b_inds = torch.randperm(batch_size, device=device)
+                for start in range(0, batch_size, minibatch_size):
+                    minibatch = torch.index_select(batch, 0, b_inds[start : start + minibatch_size])
+                    mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
+                    mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
+                    actor_hidden, critic_hidden = [], []
+                    mean, log_std = actor(mb_obs, actor_hidden)
+                    newvalue = critic(mb_obs, critic_hidden).squeeze(1)
+                    losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
+                        mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
+                    ratios.append(losses["ratio"])
 
-                actor.backward(mb_obs, actor_hidden, grad_mean, grad_log_std)
-                critic.backward(mb_obs, critic_hidden, grad_value)
-                clip_grad_norm(params, args.max_grad_norm)
-                optimizer.step()
+                    actor.backward(mb_obs, actor_hidden, grad_mean, grad_log_std)
+                    critic.backward(mb_obs, critic_hidden, grad_value)
+                    clip_grad_norm(params, args.max_grad_norm)
+                    optimizer.step()
 
-            # CleanRL's diagnostics, from the epoch's last minibatch
-            logratio, ratio = losses["logratio"], losses["ratio"]
-            old_approx_kl = (-logratio).mean()
-            approx_kl = ((ratio - 1) - logratio).mean()
-            entropy_loss = gaussian_entropy(log_std).mean()
+                # CleanRL's diagnostics, from the epoch's last minibatch
+                logratio, ratio = losses["logratio"], losses["ratio"]
+                old_approx_kl = (-logratio).mean()
+                approx_kl = ((ratio - 1) - logratio).mean()
+                entropy_loss = gaussian_entropy(log_std).mean()
 
-            if args.target_kl is not None and approx_kl > args.target_kl:
-                break
+                if args.target_kl is not None and approx_kl > args.target_kl:
+                    break
 
         y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
         var_y = np.var(y_true)
