@@ -272,13 +272,13 @@ def stacked_affine(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) ->
 
 @functools.lru_cache
 def log_contribution_matrix(n: int, dtype: torch.dtype = torch.float32, device: str = "cpu") -> torch.Tensor:
-    """M [n, 2(n-1)] that maps (log l_2..log l_n, log(1-l_2)..log(1-l_n)) to log w_1..log w_n: row i holds
-    a 1 for log(1 - l_i) (not for net 1, whose l_1 := 0) and for every log l_j with j > i."""
+    """M [n, 2(n-1)] that maps (log l_2..log l_n, log(1-l_2)..log(1-l_n)) to log w_1..log w_n: the row of
+    net i holds a 1 for every log l_j with j > i and for log(1 - l_i) (except net 1, whose l_1 := 0)."""
     matrix = torch.zeros(n, 2, max(n - 1, 0), dtype=dtype, device=device)
-    for i in range(n):
-        matrix[i, 0, i:] = 1.0  # log l_j for j > i (column k is net k + 2)
-        if i:
-            matrix[i, 1, i - 1] = 1.0  # log(1 - l_i)
+    for row in range(n):  # net i = row + 1; column c of each half is net c + 2
+        matrix[row, 0, row:] = 1.0  # log l_j, j > i
+        if row:
+            matrix[row, 1, row - 1] = 1.0  # log(1 - l_i)
     return matrix.reshape(n, -1)
 
 
