@@ -239,6 +239,11 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) 
 # tiny ops cost more than the math (SPEC-exact PPO, measured in benchmarks/throughput.py). So the
 # backward pass below is explicit: a few matmuls per layer, checked against autograd in
 # tests/test_gradients.py. To try another loss, change `ppo_loss_gradients` and run that test.
+
+# g * (1 - h^2) for h = tanh(z): autograd's own kernel for tanh's derivative, one op instead of two
+tanh_backward = torch.ops.aten.tanh_backward
+
+
 def mlp_forward(layers: tuple, x, hidden: list | None = None):
     """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L for `layers` ((W, b), ...); appends each hidden
     activation to `hidden` when given. Runs on torch tensors (training) and numpy arrays (acting:
@@ -289,9 +294,8 @@ class TanhMLP(nn.Module):
             weight, bias = self._layers[i]
             torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
             torch.sum(grad_output, 0, out=bias.grad)
-            if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2) = g - (g h) h, with g = dL/dz W^T
-                grad_h = torch.mm(grad_output, weight.T)
-                grad_output = grad_h.addcmul_(grad_h * inputs[i], inputs[i], value=-1.0)
+            if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2), with g = dL/dz W^T
+                grad_output = tanh_backward(torch.mm(grad_output, weight.T), inputs[i])
 
 
 class Actor(nn.Module):

@@ -220,16 +220,24 @@ def test_gae_matches_cleanrl_tensor_loop():
     np.testing.assert_allclose(got, advantages.numpy(), rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("n", [1, 2, 6])
-def test_numpy_policy_used_for_acting_matches_the_torch_forward(n):
-    actor = make_actor(n, seed=n)
+@pytest.mark.parametrize("n,layers", [(1, 2), (2, 2), (6, 2), (3, 1), (4, 3)])
+def test_numpy_policy_used_for_acting_matches_the_torch_forward(n, layers):
+    actor = make_actor(n, layers=layers, seed=n)
     obs = torch.randn(4, 5)
     with torch.no_grad():
         mean, log_std, _, _ = actor(obs)
-    np_mean, np_log_std = actor.numpy_policy()(obs.numpy())
+    policy = actor.numpy_policy()
+    np_mean, np_log_std = policy(obs.numpy())
     assert np_mean.dtype == np.float32 and np_log_std.dtype == np.float32
     np.testing.assert_allclose(np_mean, mean.numpy(), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(np_log_std, log_std.numpy(), rtol=1e-5, atol=1e-6)
+    for row in range(len(obs)):  # batch size 1, as in a rollout
+        np.testing.assert_allclose(policy(obs[row : row + 1].numpy())[0], np_mean[row : row + 1], rtol=1e-5, atol=1e-6)
+    # the policy holds copies: an update of the weights (in place, as Adam does) does not reach it
+    with torch.no_grad():
+        for p in actor.parameters():
+            p.add_(1.0)
+    np.testing.assert_array_equal(policy(obs.numpy())[0], np_mean)
     # a saturated fallback (sigmoid of a very negative logit) stays finite and silent in numpy
     with torch.no_grad():
         if n > 1:
