@@ -281,43 +281,21 @@ def at_or_above_matrix(n: int, dtype: torch.dtype = torch.float32, device: str =
     return torch.ones(n, max(n - 1, 0), dtype=dtype, device=device).triu(-1)
 
 
-def contributions(fallback_logit: torch.Tensor) -> torch.Tensor:
+def contributions(fallback_logit: torch.Tensor, matrix: torch.Tensor | None = None) -> torch.Tensor:
     """Share w_i of each base net in the ensemble output, from the fallback logits z [n-1, B] of nets 2..n.
 
     Unrolling C_i = l_i*C_{i-1} + (1-l_i)*b_i gives C_n = sum_i w_i*b_i with
     w_i = (1 - l_i) * prod_{j>i} l_j and l_1 := 0; w_1 = prod_{j>=2} l_j is the fallback product.
     With l = sigmoid(z): log l = logsigmoid(z) and log(1 - l) = log l - z, so
     log w_i = sum_{j>=i} log l_j - z_i (no z_1 term): one matmul and a subtraction, in log space so that
-    no product underflows. Returns w [n, B], summing to 1 over nets.
+    no product underflows. Returns w [n, B], summing to 1 over nets. `matrix` is
+    `at_or_above_matrix(n)`, for callers in a hot loop that keep it at hand.
     """
-    matrix = at_or_above_matrix(fallback_logit.shape[0] + 1, fallback_logit.dtype, str(fallback_logit.device))
+    if matrix is None:
+        matrix = at_or_above_matrix(fallback_logit.shape[0] + 1, fallback_logit.dtype, str(fallback_logit.device))
     log_weight = torch.mm(matrix, nn.functional.logsigmoid(fallback_logit))
     log_weight[1:] -= fallback_logit
     return log_weight.exp_()
-
-
-def cascade_forward(hidden_layers: tuple, heads: tuple, obs: torch.Tensor, cache: dict | None = None) -> tuple:
-    """obs [B, obs_dim] -> mean [B, A], log-std [B, A], fallback [n-1, B], contribution [n, B] of the
-    stacked base nets (`CascadeActor` holds the weights). With `cache`, keeps there what
-    `CascadeActor.backward` needs."""
-    mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = heads
-    if mean_weight.shape[0] == 0:  # the empty stack (evaluated at step 0, before net 1 exists): N(0, 1)
-        zeros = obs.new_zeros(obs.shape[0], mean_weight.shape[-1])
-        return zeros, zeros, obs.new_zeros(0, obs.shape[0]), obs.new_zeros(0, obs.shape[0])
-    hidden = obs  # every base net reads the same observation
-    activations = [hidden]
-    for weight, bias in hidden_layers:
-        hidden = torch.tanh(stacked_affine(hidden, weight, bias))  # [n, B, H], all nets at once
-        activations.append(hidden)
-    means = stacked_affine(hidden, mean_weight, mean_bias)  # [n, B, A]
-    fallback_logit = stacked_affine(hidden[1:], fallback_weight, fallback_bias)[..., 0]  # [n-1, B]
-    fallback = torch.sigmoid(fallback_logit)
-    weight = contributions(fallback_logit)  # [n, B]
-    mean = (weight[..., None] * means).sum(0)  # C_n = sum_i w_i b_i
-    log_std = torch.mm(weight.T, log_stds)  # the same sum for the per-net log-std vectors
-    if cache is not None:
-        cache.update(activations=activations, means=means, fallback=fallback, weight=weight)
-    return mean, log_std, fallback, weight
 
 
 def block_diagonal(blocks: torch.Tensor) -> np.ndarray:
@@ -330,25 +308,24 @@ def block_diagonal(blocks: torch.Tensor) -> np.ndarray:
 # negligible, so this forward is arranged for few, simple calls: the nets sit side by side in one
 # row ([B, n*H]; later layers are block-diagonal matrices, plain 2D matmuls), and one head matrix
 # gives every net's mean, its log-std (a bias-only column block) and its fallback logit as the two
-# columns -z, z. With 6 nets of 16 (the paper's) this takes 9 us per call against 11 for a batched
-# matmul per layer, ~7 ms less per 2048-step rollout on HalfCheetah-v4. The block-diagonal matrices
-# grow as (n*H)^2, so past n*H ~ 250 it is slower (6 nets of 64: 18 us against 13).
-# The tests check it against `cascade_forward`.
-def numpy_acting_forward(layers: tuple, head_weight: np.ndarray, head_bias: np.ndarray,
-                         neg_log_contribution: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """obs [B, obs_dim] -> mean, log-std [B, A] of the ensemble, as `cascade_forward`. The head's columns
-    are, per net, (mean | log-std), then -z_2..-z_n, z_2..z_n; neg_log_contribution maps
-    (softplus(-z) | softplus(z)) = (-log l | -log(1 - l)) to log w."""
+# columns -z, z. The combination is two more matmuls: one maps (softplus(-z) | softplus(z)) to log w_i,
+# repeated over net i's columns, the other sums the weighted columns over the nets. With 6 nets of 16
+# (the paper's) this takes 9 us per call against 11 for a batched matmul per layer, ~7 ms less per
+# 2048-step rollout on HalfCheetah-v4. The block-diagonal matrices grow as (n*H)^2, so past
+# n*H ~ 250 it is slower (6 nets of 64: 18 us against 13). The tests check it against `CascadeActor.forward`.
+def numpy_acting_forward(layers: tuple, head_weight: np.ndarray, head_bias: np.ndarray, spread: np.ndarray,
+                         gather: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """obs [B, obs_dim] -> mean, log-std [B, A] of the ensemble, as `CascadeActor.forward`. The head's columns
+    are, per net, (mean | log-std), then -z_2..-z_n, z_2..z_n; `spread` maps (softplus(-z) | softplus(z)) =
+    (-log l | -log(1 - l)) to log w_i on each of net i's columns, `gather` [n*2A, 2A] sums over the nets."""
     hidden = obs
     for weight, bias in layers:
         hidden = np.tanh(hidden @ weight + bias)  # [B, n*H]: all nets side by side
     heads = hidden @ head_weight + head_bias
-    n = neg_log_contribution.shape[1]
-    split = heads.shape[1] - 2 * (n - 1)
-    weight = np.exp(np.logaddexp(0.0, heads[:, split:]) @ neg_log_contribution)  # w [B, n]
-    per_net = heads[:, :split].reshape(len(obs), n, -1)  # [B, n, 2A]: (b_i | log-std_i)
-    combined = np.matmul(weight[:, None, :], per_net)[:, 0]  # sum_i w_i (b_i | log-std_i)
-    act_dim = per_net.shape[-1] // 2
+    per_net = gather.shape[0]  # n*2A columns: (b_i | log-std_i) of every net
+    weight = np.exp(np.logaddexp(0.0, heads[:, per_net:]) @ spread)  # w_i, repeated over net i's columns
+    combined = (weight * heads[:, :per_net]) @ gather  # sum_i w_i (b_i | log-std_i)
+    act_dim = gather.shape[1] // 2
     return combined[:, :act_dim], combined[:, act_dim:]
 
 
@@ -384,6 +361,7 @@ class CascadeActor(nn.Module):
         # a quarter of a forward pass at batch size 1. Rebuilt whenever the Parameters are replaced.
         self._hidden = tuple(zip(self.hidden_weights, self.hidden_biases))
         self._heads = (self.mean_weight, self.mean_bias, self.fallback_weight, self.fallback_bias, self.log_std)
+        self._at_or_above = at_or_above_matrix(self.size, self.log_std.dtype, str(self.log_std.device))
 
     @property
     def size(self) -> int:
@@ -456,9 +434,26 @@ class CascadeActor(nn.Module):
 
     def forward(self, obs: torch.Tensor, cache: dict | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """obs [B, obs_dim] -> mean [B, A], log-std [B, A], fallback [n-1, B], contribution [n, B].
-        With `cache`, keeps there what `backward` needs."""
-        return cascade_forward(self._hidden, self._heads, obs, cache)
+        """obs [B, obs_dim] -> mean [B, A], log-std [B, A], fallback [n-1, B], contribution [n, B] of the
+        stacked base nets. With `cache`, keeps there what `backward` needs."""
+        mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = self._heads
+        if mean_weight.shape[0] == 0:  # the empty stack (evaluated at step 0, before net 1 exists): N(0, 1)
+            zeros = obs.new_zeros(obs.shape[0], mean_weight.shape[-1])
+            return zeros, zeros, obs.new_zeros(0, obs.shape[0]), obs.new_zeros(0, obs.shape[0])
+        hidden = obs  # every base net reads the same observation
+        activations = [hidden]
+        for weight, bias in self._hidden:
+            hidden = stacked_affine(hidden, weight, bias).tanh_()  # [n, B, H], all nets at once
+            activations.append(hidden)
+        means = stacked_affine(hidden, mean_weight, mean_bias)  # [n, B, A]
+        fallback_logit = stacked_affine(hidden[1:], fallback_weight, fallback_bias)[..., 0]  # [n-1, B]
+        fallback = torch.sigmoid(fallback_logit)
+        weight = contributions(fallback_logit, self._at_or_above)  # [n, B]
+        mean = (weight[..., None] * means).sum(0)  # C_n = sum_i w_i b_i
+        log_std = torch.mm(weight.T, log_stds)  # the same sum for the per-net log-std vectors
+        if cache is not None:
+            cache.update(activations=activations, means=means, fallback=fallback, weight=weight)
+        return mean, log_std, fallback, weight
 
     def numpy_policy(self) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """obs [B, obs_dim] (float32 numpy) -> ensemble mean, log-std, computed on numpy copies of the
@@ -481,7 +476,10 @@ class CascadeActor(nn.Module):
         own = np.eye(n, n - 1, k=-1, dtype=np.float32)
         above = at_or_above_matrix(n).numpy() - own
         neg_log_contribution = -np.concatenate([above, own], 1).T  # [2(n-1), n]
-        return functools.partial(numpy_acting_forward, tuple(layers), head_weight, head_bias, neg_log_contribution)
+        repeat = np.kron(np.eye(n, dtype=np.float32), np.ones((1, 2 * act_dim), np.float32))  # [n, n*2A]
+        gather = np.tile(np.eye(2 * act_dim, dtype=np.float32), (n, 1))  # [n*2A, 2A]
+        return functools.partial(numpy_acting_forward, tuple(layers), head_weight, head_bias,
+                                 neg_log_contribution @ repeat, gather)
 
     def backward(self, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
         """Write every parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `forward(obs, cache)`.
