@@ -151,3 +151,35 @@ def test_cascade_gradients_match_autograd_through_the_plain_loop(n, layers, froz
     torch.testing.assert_close(losses["loss"], ref_loss.detach(), rtol=1e-9, atol=1e-12)
     for p in params:
         torch.testing.assert_close(p.grad, ref_grads[p], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("module", [pb, cpc])
+def test_adam_step_equals_torch_optimizer_step_bit_for_bit(module):
+    """adam_step calls the fused kernel directly; it must do exactly what Adam.step() does, through
+    learning-rate changes (annealing) and a checkpoint round trip of the optimizer state."""
+    g = torch.Generator().manual_seed(0)
+    start = torch.randn(300, generator=g, dtype=torch.float32)
+    grads = [torch.randn(300, generator=g, dtype=torch.float32) * 10.0 ** -k for k in range(8)]
+
+    def run(step, restore_after=None):
+        flat = torch.nn.Parameter(start.clone())
+        flat.grad = torch.zeros_like(flat)
+        optimizer = module.make_optimizer([flat], 3e-4)
+        with torch.inference_mode():  # as in training
+            for i, grad in enumerate(grads):
+                if i == restore_after:  # a fresh optimizer from the saved state, as a resumed run makes
+                    saved = optimizer.state_dict()
+                    optimizer = module.make_optimizer([flat], 3e-4)
+                    optimizer.load_state_dict(saved)
+                optimizer.param_groups[0]["lr"] = 3e-4 * (1 - i / len(grads))
+                flat.grad.copy_(grad)
+                step(optimizer)
+        return flat.detach(), optimizer.state[flat]
+
+    reference, reference_state = run(lambda optimizer: optimizer.step())
+    for restore_after in (None, 3):
+        result, state = run(module.adam_step, restore_after)
+        assert torch.equal(result, reference)
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(state[key], reference_state[key])
+    assert not torch.equal(reference, start)
