@@ -669,9 +669,9 @@ def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.op
 def adam_step(optimizer: torch.optim.Adam) -> None:
     """`optimizer.step()` for our one flat parameter: a direct call of the fused kernel that step() ends in.
 
-    step() spends ~30 us per call grouping tensors and checking options (~4x the kernel itself), and
-    ~100 us inside the training loop, where the simulator has evicted its code from the CPU caches:
-    ~30 ms of an update's 320 minibatches. The state stays in the optimizer as usual (checkpoints unchanged);
+    step() spends ~30 us per call grouping tensors and checking options (~4x the kernel itself) in a
+    tight loop, and measured ~100 us per minibatch inside the training loop: ~30 ms of an update's 320
+    minibatches. The state stays in the optimizer as usual (checkpoints unchanged);
     tests/test_gradients.py checks this against step() bit for bit, so a torch that changes the kernel's
     signature fails there.
     """
