@@ -2,9 +2,11 @@
 
 A sweep expands presets and/or command templates over env ids and seeds into runs, and executes
 each run as a subprocess of one of our scripts (`--env-id`, `--seed`, `--exp-name`, `--track-dir`
-added), with its log in `<sweep-dir>/logs/`. A run that exits 0 gets a completion marker in
-`<sweep-dir>/done/` (written last); re-running the same sweep skips marked runs and restarts the
-others, resuming from their checkpoint when one exists. Failures are reported at the end with the
+added), with its log in `<sweep-dir>/logs/`. A run's identity is its full command: its folder is
+`<sweep-dir>/runs/<env>__<label>__<seed>__<hash of the command>/`, and a run that exits 0 gets a
+completion marker `<sweep-dir>/done/<same name>.json` (written last). Re-running a sweep skips marked
+runs and restarts the others, resuming from their own checkpoint when one exists; a re-run with other
+flags (or another --scale) is another setup, so it starts new runs and never continues old ones. Failures are reported at the end with the
 path of their log; they do not stop the other runs.
 
     python sweep.py --preset standard --envs Hopper-v4 --seeds 1 2 --scale 0.01
@@ -78,6 +80,10 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("cascade", CASCADE, "--n 6 --k 1000000"),
         ("ppo", PPO, "--total-timesteps 6000000"),
     ]),
+    "reproduce": ("Fig. 2 at the paper's budget as we ran it (results/): standard Cascade vs PPO, eval every 50k", [
+        ("cascade", CASCADE, "--n 6 --k 1000000 --eval-every 50000"),
+        ("ppo", PPO, "--total-timesteps 6000000 --eval-every 50000"),
+    ]),
     "baselines": ("Fig. 3, 9: PPO over 2M..6M steps, and one 16-wide net with a cyclic LR", [
         *[(f"ppo_{m}M", PPO, f"--total-timesteps {m}000000") for m in range(2, 7)],
         ("ppo_h16_cyclic", PPO, "--total-timesteps 6000000 --hidden-size 16 --lr-schedule cyclic --cycle-steps 1000000"),
@@ -134,19 +140,37 @@ class Run:
     seed: int
 
     @property
-    def run_id(self) -> str:
-        digest = hashlib.sha1(" ".join([self.script, *self.flags]).encode()).hexdigest()[:8]
-        return f"{self.env_id}__{self.label}__{self.seed}__{digest}"
+    def setup_hash(self) -> str:
+        """Digest of the run's full command (script, flags after scaling, env, seed): its identity."""
+        command = shlex.join([self.script, *self.flags, "--env-id", self.env_id, "--seed", str(self.seed)])
+        return hashlib.sha1(command.encode()).hexdigest()[:10]
 
-    def command(self, python: str, track_dir: str) -> list[str]:
-        """The fresh run's command, or a resume of its latest checkpoint when one exists."""
-        checkpoints = sorted(glob.glob(os.path.join(track_dir, f"{self.env_id}__{self.label}__{self.seed}__*",
-                                                    "checkpoint.pt")), key=os.path.getmtime)
-        script = os.path.join(ROOT, self.script)
+    @property
+    def run_id(self) -> str:
+        return f"{self.env_id}__{self.label}__{self.seed}__{self.setup_hash}"
+
+    def identity(self) -> dict:
+        """What the completion marker records: which exact setup finished."""
+        return {"run_id": self.run_id, "setup_hash": self.setup_hash, "script": self.script, "flags": self.flags,
+                "env_id": self.env_id, "seed": self.seed}
+
+    def fresh_command(self, python: str, track_dir: str) -> list[str]:
+        return [python, os.path.join(ROOT, self.script), *self.flags, "--env-id", self.env_id, "--seed",
+                str(self.seed), "--exp-name", self.label, "--track-dir", track_dir, "--quiet"]
+
+    def command(self, python: str, runs_dir: str) -> list[str]:
+        """The fresh run's command, or a resume of its latest checkpoint when one exists.
+
+        Each setup logs into its own folder `<runs_dir>/<run_id>/`, so a checkpoint is only ever
+        resumed by the exact command that started it; the resume also repeats every flag, so the
+        script itself refuses a checkpoint whose saved settings differ."""
+        track_dir = os.path.join(runs_dir, self.run_id)
+        checkpoints = sorted(glob.glob(os.path.join(track_dir, "*", "checkpoint.pt")), key=os.path.getmtime)
+        command = self.fresh_command(python, track_dir)
         if checkpoints:
-            return [python, script, "--resume", os.path.dirname(checkpoints[-1]), "--quiet"]
-        return [python, script, *self.flags, "--env-id", self.env_id, "--seed", str(self.seed),
-                "--exp-name", self.label, "--track-dir", track_dir, "--quiet"]
+            at = command.index("--track-dir")  # the resumed run continues in its own folder
+            return [*command[:2], "--resume", os.path.dirname(checkpoints[-1]), *command[2:at], *command[at + 2 :]]
+        return command
 
 
 def scale_flags(flags: list[str], scale: float) -> list[str]:
@@ -177,12 +201,15 @@ def expand(args: Args) -> list[Run]:
             at = flags.index("--exp-name")
             label, flags = flags[at + 1], flags[:at] + flags[at + 2 :]
         templates.append((label, parts[0], flags))
+    if not args.scale > 0:
+        fail(f"--scale must be positive (got {args.scale}); e.g. 0.01 for a quick check, 1 for the paper's budgets")
     if not templates:
         fail("nothing to run: give --preset NAME (see --list-presets) and/or --command TEMPLATE")
     runs, seen = [], set()
-    for label, script, flags in templates:
-        for env_id in args.envs:
-            for seed in seeds:
+    # env by env, seed by seed: the runs one figure panel compares finish together
+    for env_id in args.envs:
+        for seed in seeds:
+            for label, script, flags in templates:
                 run = Run(label, script, scale_flags(flags, args.scale), env_id, seed)
                 if run.run_id not in seen:  # presets share some runs (e.g. standard Cascade)
                     seen.add(run.run_id)
@@ -193,7 +220,7 @@ def expand(args: Args) -> list[Run]:
 # ----------------------------------------------------------------------------------------------
 # Executing a run: a subprocess, its log, and the completion marker written last
 # ----------------------------------------------------------------------------------------------
-def execute(command: list[str], log_path: str, marker_path: str, cwd: str) -> int:
+def execute(command: list[str], log_path: str, marker_path: str, cwd: str, identity: dict | None = None) -> int:
     os.makedirs(os.path.dirname(log_path), exist_ok=True)
     with open(log_path, "a") as log:
         log.write(f"$ {shlex.join(command)}\n")
@@ -208,7 +235,7 @@ def execute(command: list[str], log_path: str, marker_path: str, cwd: str) -> in
         os.makedirs(os.path.dirname(marker_path), exist_ok=True)
         tmp = f"{marker_path}.tmp"
         with open(tmp, "w") as f:
-            json.dump({"command": command, "finished": time.time()}, f)
+            json.dump({**(identity or {}), "command": command, "finished": time.time()}, f)
         os.replace(tmp, marker_path)
     return code
 
@@ -261,7 +288,7 @@ def run_local(todo: list[tuple[Run, list[str], str, str]], workers: int, tracker
         run, command, log, marker = item
         tracker.started()
         start = time.time()
-        code = execute(command, log, marker, ROOT)
+        code = execute(command, log, marker, ROOT, run.identity())
         tracker.finished(run, code, log, time.time() - start)
 
     pool = ThreadPoolExecutor(max_workers=workers)
@@ -317,7 +344,7 @@ def run_ray(todo: list[tuple[Run, list[str], str, str]], args: Args, tracker: Tr
     remote = ray.remote(num_cpus=args.cpus_per_run, max_retries=0)(execute)
     pending = {}
     for run, command, log, marker in todo:
-        pending[remote.remote(command, log, marker, ROOT)] = (run, log, time.time())
+        pending[remote.remote(command, log, marker, ROOT, run.identity())] = (run, log, time.time())
         tracker.started()
     try:
         while pending:
@@ -346,6 +373,8 @@ def interrupt(signum, frame):
 
 def main() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
+    if args.workers < 1:
+        fail(f"--workers must be at least 1 (got {args.workers})")
     # Ctrl-C and `kill` stop the sweep cleanly, even when started in the background (where SIGINT
     # is inherited as ignored): running runs are terminated, finished ones keep their markers.
     signal.signal(signal.SIGINT, interrupt)

@@ -1,5 +1,6 @@
 """sweep.py: grid expansion, a local sweep with a failure, skipping finished runs, a real Ray head."""
 
+import json
 import os
 import socket
 import subprocess
@@ -10,7 +11,7 @@ import time
 import pytest
 
 import sweep
-from helpers import ROOT, run_script
+from helpers import ROOT, read_scalars, run_script
 
 TINY = ("cascade_ppo_continuous.py --n 1 --k 2048 --num-steps 512 --num-minibatches 4 --update-epochs 1 "
         "--eval-every 0 --checkpoint-every 0")
@@ -42,14 +43,46 @@ def test_paper_settings_in_presets():
     assert sum(r.label == "cascade" for r in merged) == 1  # shared runs are run once
 
 
-def test_unfinished_run_resumes_from_its_checkpoint(tmp_path):
+def test_unfinished_run_resumes_from_its_own_checkpoint_only(tmp_path):
     run = sweep.Run("cascade", "cascade_ppo_continuous.py", ["--n", "2"], "Hopper-v4", 3)
     assert "--resume" not in run.command("python", str(tmp_path))
-    folder = tmp_path / "Hopper-v4__cascade__3__1790000000"
-    folder.mkdir()
-    (folder / "checkpoint.pt").write_bytes(b"x")
+    # another setup's checkpoint (other flags, same env/label/seed) is never picked up
+    other = sweep.Run("cascade", "cascade_ppo_continuous.py", ["--n", "3"], "Hopper-v4", 3)
+    assert other.run_id != run.run_id and other.run_id.startswith("Hopper-v4__cascade__3__")
+    foreign = tmp_path / other.run_id / "Hopper-v4__cascade__3__1790000000"
+    foreign.mkdir(parents=True)
+    (foreign / "checkpoint.pt").write_bytes(b"x")
+    assert "--resume" not in run.command("python", str(tmp_path))
+    own = tmp_path / run.run_id / "Hopper-v4__cascade__3__1790000001"
+    own.mkdir(parents=True)
+    (own / "checkpoint.pt").write_bytes(b"x")
     command = run.command("python", str(tmp_path))
-    assert command[2:4] == ["--resume", str(folder)]
+    assert command[2:4] == ["--resume", str(own)]
+    # the resume repeats every flag, so the script itself refuses a checkpoint saved with other settings
+    assert command[4:] == ["--n", "2", "--env-id", "Hopper-v4", "--seed", "3", "--exp-name", "cascade", "--quiet"]
+
+
+def test_rerun_with_other_budget_starts_a_new_run(tmp_path):
+    """Issue 18: a re-run into the same sweep folder with another --scale used to resume the first run's
+    checkpoint and mark the new setup done after 2048 of ~4096 steps."""
+    common = ["--command", "ppo_baseline.py --total-timesteps 20480000 --eval-every 0 --checkpoint-every 0",
+              "--envs", "InvertedPendulum-v4", "--workers", "1", "--sweep-dir", tmp_path]
+    first = run_script("sweep.py", *common, "--scale", "0.0001")
+    assert first.returncode == 0, first.stdout + first.stderr
+    second = run_script("sweep.py", *common, "--scale", "0.0002")
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert "0 already finished, 1 to run" in second.stdout
+    markers = sorted(os.listdir(tmp_path / "done"))
+    assert len(markers) == 2
+    logs = {m: open(tmp_path / "logs" / m.replace(".json", ".log")).read() for m in markers}
+    assert not any("--resume" in log for log in logs.values()), logs
+    updates = {}
+    for marker in markers:  # each setup has its own run folder, trained for the budget it asked for
+        budget = int(json.load(open(tmp_path / "done" / marker))["flags"][1])
+        folders = os.listdir(tmp_path / "runs" / marker[:-5])
+        assert len(folders) == 1
+        updates[budget] = len(read_scalars(str(tmp_path / "runs" / marker[:-5] / folders[0]))["charts/learning_rate"])
+    assert updates == {2048: 1, 4096: 2}
 
 
 def test_local_sweep_reports_failure_and_skips_finished_runs(tmp_path):
@@ -65,15 +98,20 @@ def test_local_sweep_reports_failure_and_skips_finished_runs(tmp_path):
     assert "--n must be at least 1" in open(tmp_path / "logs" / broken_logs[0]).read()
     assert len(os.listdir(tmp_path / "done")) == 2
     assert sorted(d.split("__")[1] for d in os.listdir(tmp_path / "runs")) == ["good_a", "good_b"]
+    for setup in os.listdir(tmp_path / "runs"):  # one run folder inside each setup's folder
+        assert len(os.listdir(tmp_path / "runs" / setup)) == 1
 
     again = run_script("sweep.py", *args)
     assert again.returncode == 1
     assert "2 already finished, 1 to run" in again.stdout
-    assert len(os.listdir(tmp_path / "runs")) == 2  # nothing was rerun
+    assert all(len(os.listdir(tmp_path / "runs" / setup)) == 1 for setup in os.listdir(tmp_path / "runs"))
 
 
 def test_bad_input(tmp_path):
-    cases = [(["--preset", "nope"], "unknown preset 'nope'"),
+    cases = [(["--command", TINY, "--scale", "0"], "--scale must be positive"),
+             (["--command", TINY, "--scale", "-1"], "--scale must be positive"),
+             (["--command", TINY, "--workers", "0"], "--workers must be at least 1"),
+             (["--preset", "nope"], "unknown preset 'nope'"),
              (["--command", "train.py --n 2"], "unknown script"),
              (["--preset", "standard", "--seeds", "1", "two"], "--seeds must be integers"),
              ([], "nothing to run")]
