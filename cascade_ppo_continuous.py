@@ -11,6 +11,12 @@ a fresh learning-rate cycle, while the observation/reward normalization statisti
 Paper: Schmöcker & Dockhorn, "Cascade - A sequential ensemble method for continuous control tasks",
 RLJ 2025. See SPEC.md §2-§6 for every detail reproduced here.
 
+Reading order: `Args`; section 1, the algorithm in plain torch with autograd (the net, the loss, the
+training loop): this is the one definition of the math, and the place to edit it. Section 2 holds
+fast paths derived from it (a numpy acting forward, hand-written gradients); they are checked against
+section 1 while training, and a run whose section 1 was edited switches to autograd by itself.
+Section 3 is plumbing (envs, evaluation, checkpoints, progress, command line).
+
     python cascade_ppo_continuous.py --env-id Ant-v4 --n 6 --k 1000000
     tensorboard --logdir runs
 """
@@ -38,6 +44,7 @@ import torch
 import torch.nn as nn
 import tyro
 from gymnasium.wrappers.utils import RunningMeanStd
+from torch.distributions import Normal
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -57,6 +64,8 @@ class Args:
     """use CUDA if available (small nets are usually faster on the CPU)"""
     track_dir: str = "runs"
     """folder under which the run folder `runs/<run_name>` is created"""
+    autograd: bool = False
+    """act through the torch forward and update with autograd, no fast paths (slower; same results up to rounding)"""
 
     # Environment
     env_id: str = "Ant-v4"
@@ -139,9 +148,765 @@ class Args:
     """no progress display"""
 
 
-# ----------------------------------------------------------------------------------------------
-# Environment plumbing
-# ----------------------------------------------------------------------------------------------
+# ==============================================================================================
+# 1. THE ALGORITHM, in plain torch with autograd: the one definition of the math (edit it here)
+# ==============================================================================================
+def orthogonal_linear(in_features: int, out_features: int, gain: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weight [in, out] (orthogonal init with `gain`) and zero bias [1, out] of one linear layer."""
+    weight = torch.empty(out_features, in_features)
+    nn.init.orthogonal_(weight, gain)
+    return weight.T.contiguous(), torch.zeros(1, out_features)
+
+
+def stacked_affine(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """x @ weight + bias for every base net at once: x [B, in] (shared) or [n, B, in], weight [n, in, out],
+    bias [n, 1, out] -> [n, B, out]; one batched matmul for all nets."""
+    x = x if x.dim() == 3 else x.expand(weight.shape[0], *x.shape)
+    return torch.baddbmm(bias, x, weight)
+
+
+@functools.lru_cache
+def at_or_above_matrix(n: int, dtype: torch.dtype = torch.float32, device: str = "cpu") -> torch.Tensor:
+    """A [n, n-1] 0/1 matrix: row i is net i (1..n), column j the fallback l_j of net j (2..n); the entry
+    is 1 where j >= i, so that (matrix @ log l)_i = sum_{j>=i} log l_j."""
+    return torch.ones(n, max(n - 1, 0), dtype=dtype, device=device).triu(-1)
+
+
+def contributions(fallback_logit: torch.Tensor) -> torch.Tensor:
+    """Share w_i of each base net in the ensemble output, from the fallback logits z [n-1, B] of nets 2..n.
+
+    Unrolling C_i = l_i*C_{i-1} + (1-l_i)*b_i gives C_n = sum_i w_i*b_i with
+    w_i = (1 - l_i) * prod_{j>i} l_j and l_1 := 0; w_1 = prod_{j>=2} l_j is the fallback product.
+    With l = sigmoid(z): log l = logsigmoid(z) and log(1 - l) = log l - z, so
+    log w_i = sum_{j>=i} log l_j - z_i (no z_1 term): one matmul and a subtraction, in log space so that
+    no product underflows. Returns w [n, B], summing to 1 over nets.
+    """
+    matrix = at_or_above_matrix(fallback_logit.shape[0] + 1, fallback_logit.dtype, str(fallback_logit.device))
+    log_weight = torch.mm(matrix, nn.functional.logsigmoid(fallback_logit))
+    own_logit = torch.cat([fallback_logit.new_zeros(1, fallback_logit.shape[1]), fallback_logit])  # z_1 := 0
+    return torch.exp(log_weight - own_logit)
+
+
+class CascadeActor(nn.Module):
+    """A stack of base nets `obs -> H -> ... -> H -> mean (+ fallback logit)`, tanh, evaluated together.
+
+    The base nets' weights are stacked along a leading net axis ([n, in, out]) so every layer of all
+    nets is one batched matmul; the nets are then combined with the closed form of `contributions`.
+    Net 1 (the bottom) has no fallback head, so the fallback head holds nets 2..n only.
+    Each net also owns a state-independent log-std vector.
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_size: int, num_layers: int, fallback_init: float):
+        super().__init__()
+        self.obs_dim, self.act_dim = obs_dim, act_dim
+        self.hidden_size, self.num_layers = hidden_size, num_layers
+        self.fallback_init = fallback_init
+        self.num_frozen = 0  # base nets 1..num_frozen get no gradient (--freeze-previous)
+        dims = [obs_dim] + [hidden_size] * num_layers
+        self.hidden_weights = nn.ParameterList(
+            [nn.Parameter(torch.empty(0, i, o)) for i, o in zip(dims[:-1], dims[1:])]
+        )
+        self.hidden_biases = nn.ParameterList([nn.Parameter(torch.empty(0, 1, o)) for o in dims[1:]])
+        self.mean_weight = nn.Parameter(torch.empty(0, hidden_size, act_dim))
+        self.mean_bias = nn.Parameter(torch.empty(0, 1, act_dim))
+        self.fallback_weight = nn.Parameter(torch.empty(0, hidden_size, 1))
+        self.fallback_bias = nn.Parameter(torch.empty(0, 1, 1))
+        self.log_std = nn.Parameter(torch.empty(0, act_dim))
+
+    @property
+    def size(self) -> int:
+        """number of base nets in the cascade"""
+        return self.mean_weight.shape[0]
+
+    def add_base_net(self) -> None:
+        """Stack a freshly initialized base net on top (new stacked Parameters: rebuild the optimizer)."""
+        dims = [self.obs_dim] + [self.hidden_size] * self.num_layers
+        grown: dict[str, torch.Tensor] = {}
+        for i, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
+            grown[f"hidden_weights.{i}"], grown[f"hidden_biases.{i}"] = orthogonal_linear(d_in, d_out, math.sqrt(2))
+        is_bottom = self.size == 0
+        weight, bias = orthogonal_linear(self.hidden_size, self.act_dim + (0 if is_bottom else 1), 0.01)
+        grown["mean_weight"], grown["mean_bias"] = weight[:, : self.act_dim], bias[:, : self.act_dim]
+        grown["log_std"] = torch.zeros(self.act_dim)
+        if not is_bottom:
+            grown["fallback_weight"] = weight[:, self.act_dim :]
+            # sigmoid(logit(l0)) = l0: the new net starts by deferring a share l0 to the nets below
+            grown["fallback_bias"] = torch.full((1, 1), math.log(self.fallback_init / (1 - self.fallback_init)))
+        for name, param, _ in self.base_net_parameters():
+            if name in grown:
+                new = torch.cat([param.data, grown[name].unsqueeze(0).to(param.device)])
+                self._replace(name, nn.Parameter(new))
+
+    def freeze_below(self, num_frozen: int) -> None:
+        """Give no gradient to base nets 1..num_frozen (the rest train)."""
+        self.num_frozen = num_frozen
+
+    def trainable(self, param: torch.Tensor, first_net: int) -> torch.Tensor:
+        """`param` with the rows of frozen nets detached, so that no gradient reaches them."""
+        rows = max(self.num_frozen - first_net, 0)
+        return param if rows == 0 else torch.cat([param[:rows].detach(), param[rows:]])
+
+    def base_nets(self, obs: torch.Tensor, cache: dict | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """obs [B, obs_dim] -> every base net's mean [n, B, A], log-std [n, A] and fallback logit [n-1, B]
+        (nets 2..n). `cache`, when given, keeps the activations for the hand-written backward (section 2)."""
+        hidden = obs  # every base net reads the same observation
+        activations = [hidden]
+        for weight, bias in zip(self.hidden_weights, self.hidden_biases):
+            hidden = torch.tanh(stacked_affine(hidden, self.trainable(weight, 0), self.trainable(bias, 0)))
+            activations.append(hidden)  # [n, B, H], all nets at once
+        means = stacked_affine(hidden, self.trainable(self.mean_weight, 0), self.trainable(self.mean_bias, 0))
+        fallback_logit = stacked_affine(hidden[1:], self.trainable(self.fallback_weight, 1),
+                                        self.trainable(self.fallback_bias, 1))[..., 0]
+        if cache is not None:
+            cache.update(activations=activations, means=means)
+        return means, self.trainable(self.log_std, 0), fallback_logit
+
+    def forward(self, obs: torch.Tensor, cache: dict | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """obs [B, obs_dim] -> the ensemble's mean [B, A] and log-std [B, A], each net's fallback
+        l_i = sigmoid(z_i) [n-1, B] (nets 2..n) and contribution w_i [n, B]."""
+        if self.size == 0:  # the empty stack (evaluated at step 0, before net 1 exists): N(0, 1)
+            zeros = obs.new_zeros(obs.shape[0], self.act_dim)
+            return zeros, zeros, obs.new_zeros(0, obs.shape[0]), obs.new_zeros(0, obs.shape[0])
+        means, log_stds, fallback_logit = self.base_nets(obs, cache)
+        weight = contributions(fallback_logit)  # [n, B]
+        mean = (weight[..., None] * means).sum(0)  # C_n = sum_i w_i b_i
+        log_std = weight.T @ log_stds  # the same sum for the per-net log-std vectors
+        fallback = torch.sigmoid(fallback_logit)
+        if cache is not None:
+            cache.update(fallback=fallback, weight=weight)
+        return mean, log_std, fallback, weight
+
+    def member(self, obs: torch.Tensor, net: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and log-std of base net `net` (0-based) acting alone."""
+        means, log_stds, _ = self.base_nets(obs)
+        return means[net], log_stds[net].expand_as(means[net])
+
+    # --- bookkeeping of the stacked parameters ---
+    def base_net_parameters(self) -> list[tuple[str, nn.Parameter, int]]:
+        """(name, stacked parameter, index of the net its first row belongs to)."""
+        params = [(f"hidden_weights.{i}", p, 0) for i, p in enumerate(self.hidden_weights)]
+        params += [(f"hidden_biases.{i}", p, 0) for i, p in enumerate(self.hidden_biases)]
+        params += [("mean_weight", self.mean_weight, 0), ("mean_bias", self.mean_bias, 0)]
+        params += [("log_std", self.log_std, 0)]
+        params += [("fallback_weight", self.fallback_weight, 1), ("fallback_bias", self.fallback_bias, 1)]
+        return params
+
+    def frozen_rows(self, first_net: int) -> int:
+        """Leading rows of a stacked parameter whose first row is net `first_net` (0-based) that are frozen."""
+        return max(self.num_frozen - first_net, 0)
+
+    def _replace(self, name: str, param: nn.Parameter) -> None:
+        if "." in name:
+            list_name, index = name.split(".")
+            getattr(self, list_name)[int(index)] = param
+        else:
+            setattr(self, name, param)
+
+
+class TanhMLP(nn.Module):
+    """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L, weights stored [in, out], orthogonal init (CleanRL)."""
+
+    def __init__(self, sizes: list[int], gains: list[float]):
+        super().__init__()
+        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
+        for d_in, d_out, gain in zip(sizes[:-1], sizes[1:], gains):
+            weight, bias = orthogonal_linear(d_in, d_out, gain)
+            self.weights.append(nn.Parameter(weight))
+            self.biases.append(nn.Parameter(bias[0]))
+
+    def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """Output [B, out]; appends each hidden activation to `hidden` when given (for the hand-written backward)."""
+        *layers, last = zip(self.weights, self.biases)
+        for weight, bias in layers:
+            x = torch.tanh(torch.addmm(bias, x, weight))
+            if hidden is not None:
+                hidden.append(x)
+        return torch.addmm(last[1], x, last[0])
+
+
+def make_critic(obs_dim: int) -> TanhMLP:
+    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh), recreated at every Cascade iteration."""
+    return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
+
+
+def count_parameters(*modules: nn.Module) -> int:
+    return sum(p.numel() for m in modules for p in m.parameters())
+
+
+def action_distribution(mean: torch.Tensor, log_std: torch.Tensor) -> Normal:
+    """The policy pi(.|s): a diagonal Gaussian. Acting samples it as mean + std * noise."""
+    return Normal(mean, log_std.exp(), validate_args=False)
+
+
+def ppo_loss(mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor,
+             old_logprob: torch.Tensor, advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor,
+             args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """CleanRL's PPO loss on one minibatch (ppo_continuous_action.py); returns the loss and its parts."""
+    dist = action_distribution(mean, log_std)
+    logratio = dist.log_prob(actions).sum(1) - old_logprob
+    ratio = logratio.exp()
+    if args.norm_adv:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    pg_loss1 = -advantages * ratio
+    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+    if args.clip_vloss:
+        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
+        v_loss = 0.5 * torch.max((value - returns) ** 2, (v_clipped - returns) ** 2).mean()
+    else:
+        v_loss = 0.5 * ((value - returns) ** 2).mean()
+    entropy_loss = dist.entropy().sum(1).mean()
+    loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef
+    return loss, {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy_loss, "logratio": logratio,
+                  "ratio": ratio}
+
+
+def autograd_gradients(actor: CascadeActor, critic: TanhMLP, params: list[nn.Parameter], minibatch: tuple,
+                       args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The loss of one minibatch and its gradient by autograd, written into every parameter's .grad."""
+    obs, actions, old_logprob, advantages, returns, old_value = minibatch
+    with torch.enable_grad():
+        mean, log_std, _, _ = actor(obs)
+        loss, parts = ppo_loss(mean, log_std, critic(obs).squeeze(1), actions, old_logprob, advantages, returns,
+                               old_value, args)
+        grads = torch.autograd.grad(loss, params, allow_unused=True)  # unused: the empty fallback head at n = 1
+    for param, grad in zip(params, grads):
+        param.grad.copy_(grad) if grad is not None else param.grad.zero_()
+    return loss.detach(), {key: value.detach() for key, value in parts.items()}
+
+
+def compute_gae(rewards: np.ndarray, dones: np.ndarray, values: np.ndarray, next_value: np.ndarray,
+                next_done: np.ndarray, gamma: float, gae_lambda: float) -> np.ndarray:
+    """Generalized advantage estimates [T, E]. dones[t] marks that obs[t] began a new episode, so the
+    step before it does not bootstrap (CleanRL: termination and truncation alike). Plain numpy: the
+    backward recursion is 2048 tiny steps, far cheaper than as tensor ops."""
+    advantages = np.zeros_like(rewards)
+    last = np.zeros_like(next_value)
+    for t in reversed(range(len(rewards))):
+        not_done = 1.0 - (next_done if t == len(rewards) - 1 else dones[t + 1])
+        next_v = next_value if t == len(rewards) - 1 else values[t + 1]
+        delta = rewards[t] + gamma * next_v * not_done - values[t]
+        last = delta + gamma * gae_lambda * not_done * last
+        advantages[t] = last
+    return advantages
+
+
+@torch.no_grad()  # autograd is switched on where a gradient is taken (autograd_gradients, FastPaths checks)
+def train(args: Args, checkpoint: dict | None = None,
+          on_iteration_start: Callable[[dict], None] | None = None) -> dict:
+    """Runs Cascade (from scratch, or continuing `checkpoint`); returns the final actor, critic, run folder.
+    `on_iteration_start` sees the fresh state of each iteration (used by the tests)."""
+    validate(args)
+    torch.set_num_threads(args.torch_threads)
+    seed_everything(args.seed, args.torch_deterministic)
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    envs = make_vector_env(args)
+    obs_dim = int(np.prod(envs.single_observation_space.shape))
+    act_dim = int(np.prod(envs.single_action_space.shape))
+    batch_size = args.num_envs * args.num_steps
+    minibatch_size = batch_size // args.num_minibatches
+    updates_per_iteration = args.k // batch_size
+    total_updates = args.n * updates_per_iteration
+    run = RunLog(args, checkpoint, obs_dim, act_dim, envs, total_updates * batch_size)
+    fast = FastPaths(enabled=not args.autograd, run=run)
+
+    actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init).to(device)
+    if args.start_full:
+        for _ in range(args.n):
+            actor.add_base_net()
+    # rollout storage, numpy: the env takes and gives numpy, and the fast acting path runs in numpy
+    obs = np.zeros((args.num_steps, args.num_envs, obs_dim), dtype=np.float32)
+    actions = np.zeros((args.num_steps, args.num_envs, act_dim), dtype=np.float32)
+    rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
+    dones = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
+
+    def unpack(rows: torch.Tensor) -> tuple[torch.Tensor, ...]:  # obs, actions, old logprob, adv., returns, value
+        mb_obs, mb_actions, rest = rows.split([obs_dim, act_dim, 4], 1)
+        return (mb_obs, mb_actions, *rest.unbind(1))
+
+    if checkpoint is None:
+        global_step, start_iteration, start_update = 0, 1, 1
+        next_obs = envs.reset(seed=args.seed)[0].astype(np.float32)
+        next_done = np.zeros(args.num_envs, dtype=np.float32)
+        run.evaluate(0, actor)
+    else:  # the saved nets, env states, RNG streams and position in the run
+        actor, global_step, next_obs, next_done, start_iteration, start_update = run.restore(
+            checkpoint, updates_per_iteration, device)
+
+    for iteration in range(start_iteration, args.n + 1):
+        if checkpoint is not None and iteration == start_iteration and start_update > 1:
+            critic, params, optimizer = run.restore_mid_iteration(checkpoint, actor, device)
+        else:
+            # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
+            if not args.start_full:
+                actor.add_base_net()
+            if args.freeze_previous:
+                actor.freeze_below(actor.size - 1)
+            critic = make_critic(obs_dim).to(device)
+            params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+            optimizer = make_optimizer([params], args.learning_rate)
+        run.iteration_start(iteration, actor, critic, global_step)
+        if on_iteration_start is not None:
+            on_iteration_start(
+                {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}
+            )
+
+        for update in range(start_update if iteration == start_iteration else 1, updates_per_iteration + 1):
+            if args.lr_schedule == "cyclic":
+                frac = 1.0 - (update - 1.0) / updates_per_iteration
+            elif args.lr_schedule == "global":
+                frac = 1.0 - ((iteration - 1) * updates_per_iteration + update - 1.0) / total_updates
+            else:
+                frac = 1.0
+            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+
+            # --- rollout: the weights do not change during it; values, log-probs and fallback
+            # statistics are computed for the whole batch afterwards ---
+            policy = fast.acting_policy(actor, np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]]),
+                                        global_step)
+            noise = torch.randn((args.num_steps, args.num_envs, act_dim))  # torch's RNG stream, used from numpy
+            noise_np = noise.numpy()
+            for step in range(args.num_steps):
+                global_step += args.num_envs
+                obs[step] = next_obs
+                dones[step] = next_done
+                mean, log_std = policy(next_obs)
+                actions[step] = mean + np.exp(log_std) * noise_np[step]  # a sample of N(mean, std)
+                next_obs, reward, terminations, truncations, infos = envs.step(actions[step])
+                rewards[step] = reward
+                next_obs = next_obs.astype(np.float32)
+                next_done = np.logical_or(terminations, truncations).astype(np.float32)
+                run.episodes(infos, global_step)
+                if args.eval_every and global_step % args.eval_every < args.num_envs:
+                    run.evaluate(global_step, actor)
+
+            b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
+            b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
+            b_mean, b_log_std, batch_fallback, batch_contribution = actor(b_obs)
+            b_logprobs = action_distribution(b_mean, b_log_std).log_prob(b_actions).sum(1)
+            values = critic(b_obs).reshape(args.num_steps, args.num_envs)
+            next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)
+            advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
+                                     args.gamma, args.gae_lambda)
+            b_advantages = torch.as_tensor(advantages, device=device).reshape(-1)
+            b_values = values.reshape(-1)
+            b_returns = b_advantages + b_values
+
+            # --- PPO update of the whole stack and the critic ---
+            # one [B, D] tensor holding all a minibatch needs, so each minibatch is a single gather
+            batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
+                               b_values[:, None]], dim=1)
+            fast.check_gradients(actor, critic, unpack(batch[:minibatch_size]), args, global_step)
+            all_params = [*actor.parameters(), *critic.parameters()]
+            ratios = []  # of every minibatch, for the clip fraction
+            with torch.inference_mode(fast.gradients):  # the fast path needs no autograd bookkeeping at all
+                for _epoch in range(args.update_epochs):
+                    b_inds = torch.randperm(batch_size, device=device)
+                    for start in range(0, batch_size, minibatch_size):
+                        minibatch = unpack(torch.index_select(batch, 0, b_inds[start : start + minibatch_size]))
+                        if fast.gradients:  # section 2: hand-written gradients, checked against the ones below
+                            loss, parts = fast_gradients(actor, critic, minibatch, args)
+                            fast_optimizer_step(params, optimizer, args.max_grad_norm)
+                        else:
+                            loss, parts = autograd_gradients(actor, critic, all_params, minibatch, args)
+                            nn.utils.clip_grad_norm_([params], args.max_grad_norm)
+                            optimizer.step()
+                        ratios.append(parts["ratio"])
+
+                    # CleanRL's diagnostics, from the epoch's last minibatch
+                    old_approx_kl = (-parts["logratio"]).mean()
+                    approx_kl = ((parts["ratio"] - 1) - parts["logratio"]).mean()
+                    if args.target_kl is not None and approx_kl > args.target_kl:
+                        break
+
+            run.update_done(global_step, optimizer, loss, parts, old_approx_kl, approx_kl, torch.cat(ratios),
+                            b_values, b_returns, batch_fallback, batch_contribution, actor.size, fast)
+            # --- non-finite guard: stop before anything bad is written to the checkpoint ---
+            if not math.isfinite(loss.item()) or not torch.isfinite(params).all():
+                run.stop_non_finite(global_step, iteration, update)
+            run.maybe_checkpoint(iteration, update, updates_per_iteration, global_step, actor, critic, optimizer,
+                                 next_obs, next_done)
+        run.iteration_done(iteration, global_step)
+
+    run.close(global_step, actor)
+    final_stats = obs_statistics(envs)
+    envs.close()
+    return {"actor": actor, "critic": critic, "run_dir": run.run_dir, "global_step": global_step,
+            "obs_stats": final_stats, "fast_paths": fast}
+
+
+# ==============================================================================================
+# 2. FAST PATHS: derived from section 1, checked against it while training
+# ==============================================================================================
+# A rollout acts 2048 times on one observation, and a PPO minibatch is 64 samples through nets of a
+# few thousand weights: per-call overhead, not arithmetic, sets the speed. So acting runs in numpy on
+# copies of the weights, and the update's gradients are written out by hand (no autograd graph).
+# Both are derived from section 1 and checked against it while the run trains (`FastPaths`): the
+# acting forward at every rollout start, the gradients on the first minibatch of every update, in
+# float64 so that the check separates rounding (~1e-15) from a real difference (an edit: >= 1e-6).
+# A run whose section 1 was edited without this section says so in one line and continues through
+# section 1 (torch forward, autograd); to make it fast again, edit the matching function below until
+# the check passes (tests/test_gradients.py runs the same comparison).
+def block_diagonal(blocks: torch.Tensor) -> np.ndarray:
+    """[n, r, c] -> the [n*r, n*c] numpy matrix with the blocks on its diagonal (zeros elsewhere)."""
+    return torch.block_diag(*blocks.detach().cpu()).numpy()
+
+
+# At batch size 1 every numpy call costs about a microsecond and the nets' arithmetic is negligible,
+# so this forward is arranged for few, simple calls: the nets sit side by side in one row ([B, n*H];
+# later layers are block-diagonal matrices, plain 2D matmuls), and one head matrix gives every net's
+# mean, its log-std (a bias-only column block) and its fallback logit as the two columns -z, z. The
+# combination is two more matmuls: one maps (softplus(-z) | softplus(z)) to log w_i, repeated over net
+# i's columns, the other sums the weighted columns over the nets. With 6 nets of 16 (the paper's) this
+# takes 9 us per call against 11 for a batched matmul per layer. The block-diagonal matrices grow as
+# (n*H)^2, so past n*H ~ 250 it is slower (6 nets of 64: 18 us against 13).
+def numpy_acting_forward(layers: tuple, head_weight: np.ndarray, head_bias: np.ndarray, spread: np.ndarray,
+                         gather: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """obs [B, obs_dim] -> mean, log-std [B, A] of the ensemble, as `CascadeActor.forward`. The head's columns
+    are, per net, (mean | log-std), then -z_2..-z_n, z_2..z_n; `spread` maps (softplus(-z) | softplus(z)) =
+    (-log l | -log(1 - l)) to log w_i on each of net i's columns, `gather` [n*2A, 2A] sums over the nets."""
+    hidden = obs
+    for weight, bias in layers:
+        hidden = np.tanh(hidden @ weight + bias)  # [B, n*H]: all nets side by side
+    heads = hidden @ head_weight + head_bias
+    per_net = gather.shape[0]  # n*2A columns: (b_i | log-std_i) of every net
+    weight = np.exp(np.logaddexp(0.0, heads[:, per_net:]) @ spread)  # w_i, repeated over net i's columns
+    combined = (weight * heads[:, :per_net]) @ gather  # sum_i w_i (b_i | log-std_i)
+    act_dim = gather.shape[1] // 2
+    return combined[:, :act_dim], combined[:, act_dim:]
+
+
+def numpy_policy(actor: CascadeActor) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """obs [B, obs_dim] (numpy) -> ensemble mean, log-std, as `actor.forward`, computed on numpy copies of
+    the current weights (in their dtype): for acting during a rollout (the copies do not follow updates)."""
+    n, act_dim = actor.size, actor.act_dim
+    if n == 0:  # the empty stack (step-0 evaluation): N(0, 1)
+        return lambda obs: (np.zeros((len(obs), act_dim), np.float32),) * 2
+    mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = (
+        t.detach().cpu() for t in (actor.mean_weight, actor.mean_bias, actor.fallback_weight, actor.fallback_bias,
+                                   actor.log_std))
+    layers = []
+    for i, (weight, bias) in enumerate(zip(actor.hidden_weights, actor.hidden_biases)):
+        # the first layer reads the shared observation: the nets' weights side by side
+        matrix = torch.cat(list(weight.detach().cpu()), 1).numpy() if i == 0 else block_diagonal(weight)
+        layers.append((matrix, bias.detach().cpu().reshape(1, -1).numpy().copy()))
+    per_net = block_diagonal(torch.cat([mean_weight, torch.zeros_like(mean_weight)], 2))  # (mean | log-std)
+    fallback = block_diagonal(torch.cat([fallback_weight.new_zeros(1, actor.hidden_size, 1), fallback_weight]))[:, 1:]
+    head_weight = np.concatenate([per_net, -fallback, fallback], 1)
+    head_bias = torch.cat([torch.cat([mean_bias[:, 0], log_stds], 1).reshape(-1),
+                           -fallback_bias.reshape(-1), fallback_bias.reshape(-1)]).numpy()[None]
+    # log w = above @ log l + own @ log(1 - l), with above = at-or-above minus own (the diagonal j = i)
+    own = np.eye(n, n - 1, k=-1, dtype=np.float32)
+    above = at_or_above_matrix(n).numpy() - own
+    neg_log_contribution = -np.concatenate([above, own], 1).T  # [2(n-1), n]
+    repeat = np.kron(np.eye(n, dtype=np.float32), np.ones((1, 2 * act_dim), np.float32))  # [n, n*2A]
+    gather = np.tile(np.eye(2 * act_dim, dtype=np.float32), (n, 1))  # [n*2A, 2A]
+    return functools.partial(numpy_acting_forward, tuple(layers), head_weight, head_bias,
+                             neg_log_contribution @ repeat, gather)
+
+
+def torch_policy(actor: CascadeActor) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The same interface through section 1's forward (the autograd path's acting)."""
+    device = actor.log_std.device
+
+    def act(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with torch.inference_mode():
+            mean, log_std, _, _ = actor(torch.as_tensor(obs, device=device))
+        return mean.cpu().numpy(), log_std.cpu().numpy()
+
+    return act
+
+
+LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
+# g * (1 - h^2) for h = tanh(z): autograd's own kernel for tanh's derivative, one op instead of two
+tanh_backward = torch.ops.aten.tanh_backward
+
+
+def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
+    return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
+
+
+def ppo_loss_gradients(
+    mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor, old_logprob: torch.Tensor,
+    advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor, args: Args,
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`ppo_loss` and its gradient w.r.t. the nets' outputs, written out by hand.
+
+    mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
+    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss, its terms, the log-ratio and ratio.
+    """
+    batch = len(value)
+    # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
+    inv_std = torch.exp(-log_std)
+    u = (actions - mean) * inv_std
+    u2 = u * u
+    newlogprob = (u2.mul(-0.5) - log_std).sum(1) - LOG_SQRT_2PI * u.shape[1]
+    logratio = newlogprob - old_logprob
+    ratio = logratio.exp()
+    if args.norm_adv:
+        adv_std, adv_mean = torch.std_mean(advantages)
+        advantages = (advantages - adv_mean) / (adv_std + 1e-8)
+
+    # Policy loss mean(max(-A r, -A clip(r, 1-eps, 1+eps))). Its gradient w.r.t. r is -A/B wherever
+    # the unclipped term is the max (inside the clip range both terms are equal: autograd's halves
+    # add up to the same) and 0 elsewhere; dr/dlogprob = r, so dL/dlogprob = (-A r)/B there.
+    pg_loss1 = -advantages * ratio
+    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+    grad_logprob = (pg_loss1 * (pg_loss1 >= pg_loss2)).div_(batch).unsqueeze(1)
+    # dlogprob/dmean = u / std, dlogprob/dlog_std = u^2 - 1
+    grad_mean = grad_logprob * u * inv_std
+    grad_log_std = grad_logprob * u2 - grad_logprob
+
+    # Value loss 0.5 mean(max((v - R)^2, (v_clip - R)^2)) with v_clip = v_old + clip(v - v_old, -eps, eps);
+    # the clipped branch passes a gradient only where v - v_old is inside the clip range.
+    if args.clip_vloss:
+        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
+        v_loss_unclipped, v_loss_clipped = (value - returns) ** 2, (v_clipped - returns) ** 2
+        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
+        inside = (value - old_value).abs() <= args.clip_coef
+        grad_v = torch.where(v_loss_unclipped >= v_loss_clipped, value - returns,
+                             torch.where(inside, v_clipped - returns, 0.0))
+    else:
+        v_loss = 0.5 * ((value - returns) ** 2).mean()
+        grad_v = value - returns
+    grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
+
+    entropy_loss = gaussian_entropy(log_std).mean()
+    loss = pg_loss + args.vf_coef * v_loss
+    if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
+        loss = loss - args.ent_coef * entropy_loss
+        grad_log_std -= args.ent_coef / batch
+    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy_loss,
+              "logratio": logratio, "ratio": ratio}
+    return losses, grad_mean, grad_log_std, grad_value
+
+
+def cascade_backward(actor: CascadeActor, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
+    """Write every actor parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `actor(obs, cache)`."""
+    activations, means, fallback, weight = (cache[key] for key in ("activations", "means", "fallback", "weight"))
+    hidden_layers = list(zip(actor.hidden_weights, actor.hidden_biases))
+    # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
+    grad_means = weight[..., None] * grad_mean  # [n, B, A]
+    torch.mm(weight, grad_log_std, out=actor.log_std.grad)  # sum over the batch of w_i dL/dlog_std
+    hidden = activations[-1]
+    torch.bmm(hidden.transpose(1, 2), grad_means, out=actor.mean_weight.grad)
+    torch.sum(grad_means, 1, keepdim=True, out=actor.mean_bias.grad)
+    grad_hidden = torch.bmm(grad_means, actor.mean_weight.transpose(1, 2))  # [n, B, H]
+    if fallback.shape[0]:
+        # Fallback k (net k >= 2) acts through C_k = l_k C_{k-1} + (1 - l_k) b_k, and C_n changes by
+        # later_k = prod_{j>k} l_j per unit of C_k, so with g = (dL/dmean, dL/dlog_std) and z_k = logit(l_k):
+        #   dL/dz_k = l_k (1 - l_k) later_k <g, C_{k-1} - b_k> = S_{k-1} - l_k S_k,
+        # where S_k = sum_{i<=k} w_i <g, b_i> = later_k <g, C_k> (a cumulative sum, no division).
+        weighted_q = torch.addcmul((grad_means * means).sum(-1), weight, actor.log_std @ grad_log_std.T)  # [n, B]
+        partial_sums = weighted_q.cumsum_(0)  # S_1..S_n
+        grad_logit = torch.addcmul(partial_sums[:-1], fallback, partial_sums[1:], value=-1.0).unsqueeze(-1)
+        torch.bmm(hidden[1:].transpose(1, 2), grad_logit, out=actor.fallback_weight.grad)
+        torch.sum(grad_logit, 1, keepdim=True, out=actor.fallback_bias.grad)
+        grad_hidden[1:].baddbmm_(grad_logit, actor.fallback_weight.transpose(1, 2))
+    for i in reversed(range(len(hidden_layers))):
+        weight_i, bias_i = hidden_layers[i]
+        below = activations[i] if i else activations[0].expand(grad_hidden.shape[0], -1, -1)  # obs, shared
+        grad_z = tanh_backward(grad_hidden, hidden)  # g tanh' = g (1 - h^2)
+        torch.bmm(below.transpose(1, 2), grad_z, out=weight_i.grad)
+        torch.sum(grad_z, 1, keepdim=True, out=bias_i.grad)
+        if i:
+            grad_hidden = torch.bmm(grad_z, weight_i.transpose(1, 2))
+        hidden = below
+    if actor.num_frozen:  # frozen nets get no gradient (section 1 detaches them)
+        for _, param, first_net in actor.base_net_parameters():
+            param.grad[: actor.frozen_rows(first_net)] = 0.0
+
+
+def mlp_backward(mlp: TanhMLP, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
+    """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `mlp(x, hidden)`."""
+    inputs = [x, *hidden]
+    for i in reversed(range(len(mlp.weights))):
+        weight, bias = mlp.weights[i], mlp.biases[i]
+        torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
+        torch.sum(grad_output, 0, out=bias.grad)
+        if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2), with g = dL/dz W^T
+            grad_output = tanh_backward(torch.mm(grad_output, weight.T), inputs[i])
+
+
+def fast_gradients(actor: CascadeActor, critic: TanhMLP, minibatch: tuple, args: Args,
+                   output_grads: list | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """`autograd_gradients` by hand: the loss of one minibatch, its gradient written into every .grad.
+    `output_grads` receives dL/dmean, dL/dlog_std, dL/dvalue (for the check)."""
+    obs, actions, old_logprob, advantages, returns, old_value = minibatch
+    cache, critic_hidden = {}, []
+    mean, log_std, _, _ = actor(obs, cache)
+    value = critic(obs, critic_hidden).squeeze(1)
+    losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
+        mean, log_std, value, actions, old_logprob, advantages, returns, old_value, args)
+    if output_grads is not None:
+        output_grads += [grad_mean, grad_log_std, grad_value.squeeze(1)]
+    cascade_backward(actor, cache, grad_mean, grad_log_std)
+    mlp_backward(critic, obs, critic_hidden, grad_value)
+    return losses.pop("loss"), losses
+
+
+def share_one_buffer(params: list[nn.Parameter]) -> nn.Parameter:
+    """Make every parameter, and its .grad, a view into one flat buffer; return that buffer as a Parameter.
+
+    The optimizer then updates a single tensor and the gradient norm is one reduction, instead of
+    one small op per parameter. Values are unchanged; both gradient paths overwrite the .grad views
+    every minibatch (so there is no zero_grad)."""
+    flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
+    flat.grad = torch.zeros_like(flat)
+    offset = 0
+    for p in params:
+        p.data = flat.data[offset : offset + p.numel()].view_as(p)
+        p.grad = flat.grad[offset : offset + p.numel()].view_as(p)
+        offset += p.numel()
+    return flat
+
+
+def clip_grad_norm(flat: nn.Parameter, max_norm: float) -> None:
+    """torch.nn.utils.clip_grad_norm_ on the one gradient buffer: scale by min(1, max_norm / (norm + 1e-6))."""
+    flat.grad.mul_(torch.clamp(max_norm / (flat.grad.norm() + 1e-6), max=1.0))
+
+
+def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
+    """PPO's Adam (eps 1e-5); the fused kernel updates all parameters at once, ~3x faster on CPU."""
+    return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
+
+
+def adam_step(optimizer: torch.optim.Adam) -> None:
+    """`optimizer.step()` for our one flat parameter: a direct call of the fused kernel that step() ends in.
+
+    step() spends ~30 us per call grouping tensors and checking options (~4x the kernel itself) in a
+    tight loop, and measured ~100 us per minibatch inside the training loop: ~30 ms of an update's 320
+    minibatches. The state stays in the optimizer as usual (checkpoints unchanged);
+    tests/test_gradients.py checks this against step() bit for bit, so a torch that changes the kernel's
+    signature fails there.
+    """
+    group = optimizer.param_groups[0]
+    (param,) = group["params"]
+    state = optimizer.state.get(param)
+    if not state:  # the first step creates the state
+        optimizer.step()
+        return
+    state["step"] += 1  # as step() does before the kernel
+    beta1, beta2 = group["betas"]
+    torch._fused_adam_([param], [param.grad], [state["exp_avg"]], [state["exp_avg_sq"]], [], [state["step"]],
+                       amsgrad=False, lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"],
+                       eps=group["eps"], maximize=False)
+
+
+def fast_optimizer_step(flat: nn.Parameter, optimizer: torch.optim.Adam, max_norm: float) -> None:
+    """nn.utils.clip_grad_norm_ and optimizer.step() on the one parameter buffer, without their overhead."""
+    clip_grad_norm(flat, max_norm)
+    adam_step(optimizer)
+
+
+# Relative disagreement (max |fast - reference| / max |reference|, in float64) above which a fast path
+# counts as not matching section 1. Measured on the unmodified script: at most ~1e-13 (README, "Hacking
+# Cascade"); the smallest edit tried (0.01 * mean.pow(2).mean() added to the loss) gives ~1e-6 to 1e-3.
+FAST_PATH_TOLERANCE = 1e-9
+
+
+def relative_error(fast: list[torch.Tensor], reference: list[torch.Tensor]) -> float:
+    fast_flat = torch.cat([t.reshape(-1) for t in fast])
+    reference_flat = torch.cat([t.reshape(-1) for t in reference])
+    scale = max(reference_flat.abs().max().item() if len(reference_flat) else 0.0, 1e-30)
+    return (fast_flat - reference_flat).abs().max().item() / scale if len(reference_flat) else 0.0
+
+
+def float64_copy(module: nn.Module) -> nn.Module:
+    """A float64 copy with zeroed .grad buffers; copying draws no random numbers (the run's RNG is untouched)."""
+    twin = copy.deepcopy(module).double()
+    for param in twin.parameters():
+        param.grad = torch.zeros_like(param)
+    return twin
+
+
+class FastPaths:
+    """Which fast paths are on, and their checks against section 1 (float64 copies of the nets).
+
+    A check that fails turns its path off for the rest of the run: the run then acts through
+    `torch_policy` / updates through `autograd_gradients`, and says so once, in one line."""
+
+    def __init__(self, enabled: bool, run: RunLog | None = None):
+        self.acting = self.gradients = enabled
+        self.run = run
+        self.worst = {"acting": 0.0, "gradients": 0.0}  # largest disagreement seen by the checks that passed
+        self.check_seconds = 0.0
+        self.messages: list[str] = []
+
+    def acting_policy(self, actor: CascadeActor, check_obs: np.ndarray, step: int) -> Callable:
+        """The rollout's acting function: the numpy forward if it matches `actor.forward` on `check_obs`."""
+        if not self.acting:
+            return torch_policy(actor)
+        start = time.perf_counter()
+        twin = float64_copy(actor)
+        obs = torch.as_tensor(check_obs, dtype=torch.float64)
+        reference = twin(obs.to(twin.log_std.device))[:2]
+        fast = [torch.as_tensor(a) for a in numpy_policy(twin)(obs.numpy())]
+        error = relative_error(fast, [r.cpu() for r in reference])
+        self.check_seconds += time.perf_counter() - start
+        if error > FAST_PATH_TOLERANCE:
+            self.switch_off("acting", f"the numpy acting forward (numpy_policy) differs from CascadeActor.forward "
+                            f"(max relative error {error:.1e})", step)
+            return torch_policy(actor)
+        self.worst["acting"] = max(self.worst["acting"], error)
+        return numpy_policy(actor)
+
+    def check_gradients(self, actor: CascadeActor, critic: TanhMLP, minibatch: tuple, args: Args, step: int) -> None:
+        """Compare the hand-written gradients with autograd through section 1 on one minibatch."""
+        if not self.gradients:
+            return
+        start = time.perf_counter()
+        actor64, critic64 = float64_copy(actor), float64_copy(critic)
+        params = [*actor64.parameters(), *critic64.parameters()]
+        obs, *rest = (t.detach().double() for t in minibatch)
+        with torch.enable_grad():
+            mean, log_std, _, _ = actor64(obs)
+            value = critic64(obs).squeeze(1)
+            loss, _ = ppo_loss(mean, log_std, value, *rest, args)
+            grads = torch.autograd.grad(loss, [mean, log_std, value, *params], allow_unused=True)
+        grads = [torch.zeros_like(t) if g is None else g for t, g in zip([mean, log_std, value, *params], grads)]
+        output_grads: list[torch.Tensor] = []
+        with torch.no_grad():
+            fast_loss, _ = fast_gradients(actor64, critic64, (obs, *rest), args, output_grads)
+        num_actor = len(list(actor64.parameters()))
+        comparisons = [
+            ("loss", "ppo_loss_gradients computes another loss than ppo_loss", [fast_loss], [loss.detach()]),
+            ("loss gradient", "ppo_loss_gradients' gradient differs from autograd through ppo_loss",
+             output_grads, grads[:3]),
+            ("actor gradient", "cascade_backward differs from autograd through CascadeActor.forward",
+             [p.grad for p in params[:num_actor]], grads[3 : 3 + num_actor]),
+            ("critic gradient", "mlp_backward differs from autograd through TanhMLP.forward",
+             [p.grad for p in params[num_actor:]], grads[3 + num_actor :]),
+        ]
+        self.check_seconds += time.perf_counter() - start
+        if not all(torch.isfinite(g).all() for g in grads) or not math.isfinite(loss.item()):
+            return  # non-finite values are the non-finite guard's business
+        worst = 0.0
+        for _, what, fast, reference in comparisons:
+            error = relative_error(fast, reference)
+            if error > FAST_PATH_TOLERANCE:
+                self.switch_off("gradients", f"{what} (max relative error {error:.1e})", step)
+                return
+            worst = max(worst, error)
+        self.worst["gradients"] = max(self.worst["gradients"], worst)
+
+    def switch_off(self, path: str, what: str, step: int) -> None:
+        setattr(self, path, False)
+        remedy = ("acting through CascadeActor.forward" if path == "acting"
+                  else "updating with autograd through ppo_loss and the nets' forward")
+        message = (f"fast path check at global_step={step}: {what}; continuing by {remedy} (as --autograd). "
+                   f"If section 1 was edited on purpose, this is expected; edit section 2 to match it to get the speed back")
+        self.messages.append(message)
+        if self.run is not None:
+            self.run.fast_path_off(message, step)
+
+
+# ==============================================================================================
+# 3. PLUMBING: environments, evaluation, checkpoints, progress, command line
+# ==============================================================================================
 OBS_CLIP = 10.0
 REWARD_CLIP = 10.0
 NORM_EPS = 1e-8  # the epsilon of gymnasium's NormalizeObservation
@@ -254,454 +1019,197 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) 
 
 
 # ----------------------------------------------------------------------------------------------
-# The Cascade net
+# The run's bookkeeping: TensorBoard, evaluations, checkpoints and resume, progress
 # ----------------------------------------------------------------------------------------------
-def orthogonal_linear(in_features: int, out_features: int, gain: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weight [in, out] (orthogonal init with `gain`) and zero bias [1, out] of one linear layer."""
-    weight = torch.empty(out_features, in_features)
-    nn.init.orthogonal_(weight, gain)
-    return weight.T.contiguous(), torch.zeros(1, out_features)
+class RunLog:
+    """Everything `train` records about a run and restores when it is resumed; no algorithm here."""
 
+    def __init__(self, args: Args, checkpoint: dict | None, obs_dim: int, act_dim: int,
+                 envs: gym.vector.VectorEnv, total_steps: int):
+        from torch.utils.tensorboard import SummaryWriter
 
-def stacked_affine(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """x @ weight + bias for every base net at once: x [B, in] (shared) or [n, B, in], weight [n, in, out],
-    bias [n, 1, out] -> [n, B, out]."""
-    x = x if x.dim() == 3 else x.expand(weight.shape[0], *x.shape)
-    return torch.baddbmm(bias, x, weight)  # one fused op
-
-
-# g * (1 - h^2) for h = tanh(z): autograd's own kernel for tanh's derivative, one op instead of two
-tanh_backward = torch.ops.aten.tanh_backward
-
-
-@functools.lru_cache
-def at_or_above_matrix(n: int, dtype: torch.dtype = torch.float32, device: str = "cpu") -> torch.Tensor:
-    """A [n, n-1] 0/1 matrix: row i is net i (1..n), column j the fallback l_j of net j (2..n); the entry
-    is 1 where j >= i, so that (matrix @ log l)_i = sum_{j>=i} log l_j."""
-    return torch.ones(n, max(n - 1, 0), dtype=dtype, device=device).triu(-1)
-
-
-def contributions(fallback_logit: torch.Tensor, matrix: torch.Tensor | None = None) -> torch.Tensor:
-    """Share w_i of each base net in the ensemble output, from the fallback logits z [n-1, B] of nets 2..n.
-
-    Unrolling C_i = l_i*C_{i-1} + (1-l_i)*b_i gives C_n = sum_i w_i*b_i with
-    w_i = (1 - l_i) * prod_{j>i} l_j and l_1 := 0; w_1 = prod_{j>=2} l_j is the fallback product.
-    With l = sigmoid(z): log l = logsigmoid(z) and log(1 - l) = log l - z, so
-    log w_i = sum_{j>=i} log l_j - z_i (no z_1 term): one matmul and a subtraction, in log space so that
-    no product underflows. Returns w [n, B], summing to 1 over nets. `matrix` is
-    `at_or_above_matrix(n)`, for callers in a hot loop that keep it at hand.
-    """
-    if matrix is None:
-        matrix = at_or_above_matrix(fallback_logit.shape[0] + 1, fallback_logit.dtype, str(fallback_logit.device))
-    log_weight = torch.mm(matrix, nn.functional.logsigmoid(fallback_logit))
-    log_weight[1:] -= fallback_logit
-    return log_weight.exp_()
-
-
-def block_diagonal(blocks: torch.Tensor) -> np.ndarray:
-    """[n, r, c] -> the [n*r, n*c] numpy matrix with the blocks on its diagonal (zeros elsewhere)."""
-    return torch.block_diag(*blocks.detach().cpu()).numpy()
-
-
-# Acting during a rollout runs in numpy on copies of the weights (they do not change within a
-# rollout). At batch size 1 every numpy call costs about a microsecond and the nets' arithmetic is
-# negligible, so this forward is arranged for few, simple calls: the nets sit side by side in one
-# row ([B, n*H]; later layers are block-diagonal matrices, plain 2D matmuls), and one head matrix
-# gives every net's mean, its log-std (a bias-only column block) and its fallback logit as the two
-# columns -z, z. The combination is two more matmuls: one maps (softplus(-z) | softplus(z)) to log w_i,
-# repeated over net i's columns, the other sums the weighted columns over the nets. With 6 nets of 16
-# (the paper's) this takes 9 us per call against 11 for a batched matmul per layer, ~7 ms less per
-# 2048-step rollout on HalfCheetah-v4. The block-diagonal matrices grow as (n*H)^2, so past
-# n*H ~ 250 it is slower (6 nets of 64: 18 us against 13). The tests check it against `CascadeActor.forward`.
-def numpy_acting_forward(layers: tuple, head_weight: np.ndarray, head_bias: np.ndarray, spread: np.ndarray,
-                         gather: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """obs [B, obs_dim] -> mean, log-std [B, A] of the ensemble, as `CascadeActor.forward`. The head's columns
-    are, per net, (mean | log-std), then -z_2..-z_n, z_2..z_n; `spread` maps (softplus(-z) | softplus(z)) =
-    (-log l | -log(1 - l)) to log w_i on each of net i's columns, `gather` [n*2A, 2A] sums over the nets."""
-    hidden = obs
-    for weight, bias in layers:
-        hidden = np.tanh(hidden @ weight + bias)  # [B, n*H]: all nets side by side
-    heads = hidden @ head_weight + head_bias
-    per_net = gather.shape[0]  # n*2A columns: (b_i | log-std_i) of every net
-    weight = np.exp(np.logaddexp(0.0, heads[:, per_net:]) @ spread)  # w_i, repeated over net i's columns
-    combined = (weight * heads[:, :per_net]) @ gather  # sum_i w_i (b_i | log-std_i)
-    act_dim = gather.shape[1] // 2
-    return combined[:, :act_dim], combined[:, act_dim:]
-
-
-class CascadeActor(nn.Module):
-    """A stack of base nets `obs -> H -> ... -> H -> mean (+ fallback logit)`, tanh, evaluated together.
-
-    The base nets' weights are stacked along a leading net axis ([n, in, out]) so every layer of all
-    nets is one batched matmul; the nets are then combined with the closed form of `contributions`.
-    Net 1 (the bottom) has no fallback head, so the fallback head holds nets 2..n only.
-    Each net also owns a state-independent log-std vector.
-    """
-
-    def __init__(self, obs_dim: int, act_dim: int, hidden_size: int, num_layers: int, fallback_init: float):
-        super().__init__()
-        self.obs_dim, self.act_dim = obs_dim, act_dim
-        self.hidden_size, self.num_layers = hidden_size, num_layers
-        self.fallback_init = fallback_init
-        self.num_frozen = 0  # base nets 1..num_frozen get no gradient (--freeze-previous)
-        dims = [obs_dim] + [hidden_size] * num_layers
-        self.hidden_weights = nn.ParameterList(
-            [nn.Parameter(torch.empty(0, i, o)) for i, o in zip(dims[:-1], dims[1:])]
-        )
-        self.hidden_biases = nn.ParameterList([nn.Parameter(torch.empty(0, 1, o)) for o in dims[1:]])
-        self.mean_weight = nn.Parameter(torch.empty(0, hidden_size, act_dim))
-        self.mean_bias = nn.Parameter(torch.empty(0, 1, act_dim))
-        self.fallback_weight = nn.Parameter(torch.empty(0, hidden_size, 1))
-        self.fallback_bias = nn.Parameter(torch.empty(0, 1, 1))
-        self.log_std = nn.Parameter(torch.empty(0, act_dim))
-        self._cache_parameters()
-
-    def _cache_parameters(self) -> None:
-        # Plain references for the hot path: attribute lookups through nn.Module cost ~1 us each,
-        # a quarter of a forward pass at batch size 1. Rebuilt whenever the Parameters are replaced.
-        self._hidden = tuple(zip(self.hidden_weights, self.hidden_biases))
-        self._heads = (self.mean_weight, self.mean_bias, self.fallback_weight, self.fallback_bias, self.log_std)
-        self._at_or_above = at_or_above_matrix(self.size, self.log_std.dtype, str(self.log_std.device))
-
-    @property
-    def size(self) -> int:
-        """number of base nets in the cascade"""
-        return self.mean_weight.shape[0]
-
-    def base_net_parameters(self) -> list[tuple[str, nn.Parameter, int]]:
-        """(name, stacked parameter, index of the net its first row belongs to)."""
-        params = [(f"hidden_weights.{i}", p, 0) for i, p in enumerate(self.hidden_weights)]
-        params += [(f"hidden_biases.{i}", p, 0) for i, p in enumerate(self.hidden_biases)]
-        params += [("mean_weight", self.mean_weight, 0), ("mean_bias", self.mean_bias, 0)]
-        params += [("log_std", self.log_std, 0)]
-        params += [("fallback_weight", self.fallback_weight, 1), ("fallback_bias", self.fallback_bias, 1)]
-        return params
-
-    def add_base_net(self) -> None:
-        """Stack a freshly initialized base net on top (new stacked Parameters: rebuild the optimizer)."""
-        dims = [self.obs_dim] + [self.hidden_size] * self.num_layers
-        grown: dict[str, torch.Tensor] = {}
-        for i, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
-            grown[f"hidden_weights.{i}"], grown[f"hidden_biases.{i}"] = orthogonal_linear(d_in, d_out, math.sqrt(2))
-        is_bottom = self.size == 0
-        weight, bias = orthogonal_linear(self.hidden_size, self.act_dim + (0 if is_bottom else 1), 0.01)
-        grown["mean_weight"], grown["mean_bias"] = weight[:, : self.act_dim], bias[:, : self.act_dim]
-        grown["log_std"] = torch.zeros(self.act_dim)
-        if not is_bottom:
-            grown["fallback_weight"] = weight[:, self.act_dim :]
-            # sigmoid(logit(l0)) = l0: the new net starts by deferring a share l0 to the nets below
-            grown["fallback_bias"] = torch.full((1, 1), math.log(self.fallback_init / (1 - self.fallback_init)))
-        for name, param, _ in self.base_net_parameters():
-            if name in grown:
-                new = torch.cat([param.data, grown[name].unsqueeze(0).to(param.device)])
-                self._replace(name, nn.Parameter(new))
-        self._register_freeze_hooks()
-        self._cache_parameters()
-
-    def _apply(self, fn, recurse=True):  # .to(device) and friends may swap the Parameters
-        module = super()._apply(fn, recurse)
-        self._cache_parameters()
-        return module
-
-    def _replace(self, name: str, param: nn.Parameter) -> None:
-        if "." in name:
-            list_name, index = name.split(".")
-            getattr(self, list_name)[int(index)] = param
+        self.args, self.envs, self.obs_dim, self.act_dim = args, envs, obs_dim, act_dim
+        batch_size = args.num_envs * args.num_steps
+        if args.k % batch_size and checkpoint is None:
+            print(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
+                  f"{args.k // batch_size} updates = {args.k // batch_size * batch_size} steps")
+        if checkpoint is None:
+            run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+            self.run_dir = os.path.join(args.track_dir, run_name)
+            self.writer = SummaryWriter(self.run_dir)
+            self.writer.add_text(
+                "hyperparameters",
+                "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
+            )
         else:
-            setattr(self, name, param)
+            self.run_dir = os.path.dirname(checkpoint["path"])
+            # purge_step hides whatever the killed run logged after its last checkpoint
+            self.writer = SummaryWriter(self.run_dir, purge_step=checkpoint["global_step"] + 1)
+        self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT_NAME)
+        self.runner = None
+        if args.eval_every:
+            self.runner = EvaluationRunner(args, obs_dim, act_dim,
+                                           calls=0 if checkpoint is None else checkpoint["eval_calls"])
+        self.progress = Progress(total_steps, args.quiet)
+        self.start_time = time.time()
+        self.last_checkpoint_step = 0
 
-    def freeze_below(self, num_frozen: int) -> None:
-        """Give no gradient to base nets 1..num_frozen (the rest train)."""
-        self.num_frozen = num_frozen
+    # --- resume ---
+    def restore(self, checkpoint: dict, updates_per_iteration: int, device: torch.device) -> tuple:
+        """The saved nets, env states and RNG streams; returns (actor, global_step, next_obs, next_done,
+        iteration, update) of where the run continues."""
+        global_step = checkpoint["global_step"]
+        self.start_time = time.time() - checkpoint["elapsed"]
+        self.last_checkpoint_step = global_step
+        self.envs.reset(seed=self.args.seed)  # sets up the vector env; then every env gets its saved state back
+        self.envs.call("set_state", checkpoint["env_states"])
+        next_obs = np.asarray(checkpoint["next_obs"], dtype=np.float32)
+        actor = actor_from_checkpoint(checkpoint, device)
+        iteration, update = checkpoint["iteration"], checkpoint["updates_done"] + 1
+        if update > updates_per_iteration:  # saved at the end of an iteration
+            iteration, update = iteration + 1, 1
+        set_rng_states(checkpoint["rng"])
+        self.progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
+        return actor, global_step, next_obs, checkpoint["next_done"], iteration, update
 
-    def frozen_rows(self, first_net: int) -> int:
-        """Leading rows of a stacked parameter whose first row is net `first_net` (0-based) that are frozen."""
-        return max(self.num_frozen - first_net, 0)
+    def restore_mid_iteration(self, checkpoint: dict, actor: CascadeActor, device: torch.device) -> tuple:
+        """The saved critic and optimizer of an iteration the checkpoint was written in the middle of."""
+        rng = torch.get_rng_state()  # the critic's init draws must not shift the restored RNG stream
+        critic = make_critic(self.obs_dim).to(device)
+        torch.set_rng_state(rng)
+        critic.load_state_dict(checkpoint["critic"])
+        params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+        optimizer = make_optimizer([params], self.args.learning_rate)
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        return critic, params, optimizer
 
-    def _register_freeze_hooks(self) -> None:
-        # training uses `backward` below; these hooks make autograd (e.g. plots/analyze.py) respect freezing too
-        for _, param, first_net in self.base_net_parameters():
+    # --- logging ---
+    def iteration_start(self, iteration: int, actor: CascadeActor, critic: nn.Module, global_step: int) -> None:
+        n_params = count_parameters(actor, critic)
+        self.writer.add_scalar("cascade/size", actor.size, global_step)
+        self.writer.add_scalar("cascade/parameters", n_params, global_step)
+        self.progress.message(f"iteration {iteration}/{self.args.n}: {actor.size} base net(s), {n_params} parameters "
+                              "(actor + critic)")
 
-            def mask(grad: torch.Tensor, first_net: int = first_net) -> torch.Tensor:
-                rows = self.frozen_rows(first_net)
-                if rows == 0:
-                    return grad
-                grad = grad.clone()
-                grad[:rows] = 0.0
-                return grad
+    def episodes(self, infos: dict, global_step: int) -> None:
+        """Raw returns and lengths of the training episodes that ended at this step."""
+        if "final_info" in infos and "episode" in infos["final_info"]:
+            finished = infos["final_info"]["_episode"]
+            for ret, length in zip(infos["final_info"]["episode"]["r"][finished],
+                                   infos["final_info"]["episode"]["l"][finished]):
+                self.writer.add_scalar("charts/episodic_return", ret, global_step)
+                self.writer.add_scalar("charts/episodic_length", length, global_step)
 
-            param.register_hook(mask)
+    def update_done(self, global_step: int, optimizer: torch.optim.Optimizer, loss: torch.Tensor, parts: dict,
+                    old_approx_kl: torch.Tensor, approx_kl: torch.Tensor, ratios: torch.Tensor,
+                    b_values: torch.Tensor, b_returns: torch.Tensor, batch_fallback: torch.Tensor,
+                    batch_contribution: torch.Tensor, size: int, fast: FastPaths) -> None:
+        """CleanRL's scalars and the fallback metrics of SPEC §6 after one update."""
+        write = self.writer.add_scalar
+        y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
+        var_y = np.var(y_true)
+        explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
+        write("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
+        write("losses/value_loss", parts["value_loss"].item(), global_step)
+        write("losses/policy_loss", parts["policy_loss"].item(), global_step)
+        write("losses/entropy", parts["entropy"].item(), global_step)
+        write("losses/old_approx_kl", old_approx_kl.item(), global_step)
+        write("losses/approx_kl", approx_kl.item(), global_step)
+        write("losses/clipfrac", ((ratios - 1.0).abs() > self.args.clip_coef).float().mean().item(), global_step)
+        write("losses/explained_variance", explained_var, global_step)
+        # means over the rollout batch, of the lambdas/weights the acting policy used
+        mean_weight = batch_contribution.mean(1)
+        for j, lam in enumerate(batch_fallback.mean(1).tolist()):
+            write(f"cascade/fallback/net_{j + 2}", lam, global_step)
+        for j, w in enumerate(mean_weight.tolist()):
+            write(f"cascade/contribution/net_{j + 1}", w, global_step)
+        write("cascade/fallback_product", mean_weight[0].item(), global_step)
+        sps = global_step / (time.time() - self.start_time)
+        write("charts/SPS", int(sps), global_step)
+        write("cascade/size", size, global_step)
+        write("charts/fast_acting", float(fast.acting), global_step)
+        write("charts/fast_gradients", float(fast.gradients), global_step)
+        write("charts/fast_path_check_seconds", fast.check_seconds, global_step)
+        self.progress.update(global_step, sps, size)
 
-    def forward(self, obs: torch.Tensor, cache: dict | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """obs [B, obs_dim] -> mean [B, A], log-std [B, A], fallback [n-1, B], contribution [n, B] of the
-        stacked base nets. With `cache`, keeps there what `backward` needs."""
-        mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = self._heads
-        if mean_weight.shape[0] == 0:  # the empty stack (evaluated at step 0, before net 1 exists): N(0, 1)
-            zeros = obs.new_zeros(obs.shape[0], mean_weight.shape[-1])
-            return zeros, zeros, obs.new_zeros(0, obs.shape[0]), obs.new_zeros(0, obs.shape[0])
-        hidden = obs  # every base net reads the same observation
-        activations = [hidden]
-        for weight, bias in self._hidden:
-            hidden = stacked_affine(hidden, weight, bias).tanh_()  # [n, B, H], all nets at once
-            activations.append(hidden)
-        means = stacked_affine(hidden, mean_weight, mean_bias)  # [n, B, A]
-        fallback_logit = stacked_affine(hidden[1:], fallback_weight, fallback_bias)[..., 0]  # [n-1, B]
-        fallback = torch.sigmoid(fallback_logit)
-        weight = contributions(fallback_logit, self._at_or_above)  # [n, B]
-        mean = (weight[..., None] * means).sum(0)  # C_n = sum_i w_i b_i
-        log_std = torch.mm(weight.T, log_stds)  # the same sum for the per-net log-std vectors
-        if cache is not None:
-            cache.update(activations=activations, means=means, fallback=fallback, weight=weight)
-        return mean, log_std, fallback, weight
+    def fast_path_off(self, message: str, step: int) -> None:
+        """A fast path failed its check: one line on stderr (also with --quiet), a TensorBoard text."""
+        print(f"\r\033[Kwarning: {message}" if self.progress.tty else f"warning: {message}", file=sys.stderr,
+              flush=True)
+        self.writer.add_text("fast_paths", message, step)
+        self.progress.note = " | autograd (fast path check failed)"
 
-    def numpy_policy(self) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """obs [B, obs_dim] (float32 numpy) -> ensemble mean, log-std, computed on numpy copies of the
-        current weights: for acting during a rollout (the copies do not follow later updates)."""
-        n, act_dim = self.size, self.act_dim
-        if n == 0:  # the empty stack (step-0 evaluation): N(0, 1)
-            return lambda obs: (np.zeros((len(obs), act_dim), np.float32),) * 2
-        mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = (t.detach().cpu() for t in self._heads)
-        layers = []
-        for i, (weight, bias) in enumerate(self._hidden):
-            # the first layer reads the shared observation: the nets' weights side by side
-            matrix = torch.cat(list(weight.detach().cpu()), 1).numpy() if i == 0 else block_diagonal(weight)
-            layers.append((matrix, bias.detach().cpu().reshape(1, -1).numpy().copy()))
-        per_net = block_diagonal(torch.cat([mean_weight, torch.zeros_like(mean_weight)], 2))  # (mean | log-std)
-        fallback = block_diagonal(torch.cat([torch.zeros(1, self.hidden_size, 1), fallback_weight]))[:, 1:]
-        head_weight = np.concatenate([per_net, -fallback, fallback], 1)
-        head_bias = torch.cat([torch.cat([mean_bias[:, 0], log_stds], 1).reshape(-1),
-                               -fallback_bias.reshape(-1), fallback_bias.reshape(-1)]).numpy()[None]
-        # log w = above @ log l + own @ log(1 - l), with above = at-or-above minus own (the diagonal j = i)
-        own = np.eye(n, n - 1, k=-1, dtype=np.float32)
-        above = at_or_above_matrix(n).numpy() - own
-        neg_log_contribution = -np.concatenate([above, own], 1).T  # [2(n-1), n]
-        repeat = np.kron(np.eye(n, dtype=np.float32), np.ones((1, 2 * act_dim), np.float32))  # [n, n*2A]
-        gather = np.tile(np.eye(2 * act_dim, dtype=np.float32), (n, 1))  # [n*2A, 2A]
-        return functools.partial(numpy_acting_forward, tuple(layers), head_weight, head_bias,
-                                 neg_log_contribution @ repeat, gather)
+    def stop_non_finite(self, global_step: int, iteration: int, update: int) -> None:
+        self.writer.close()
+        fail(f"non-finite loss or parameters at global_step={global_step} (iteration {iteration}, update "
+             f"{update}); the last good checkpoint {self.checkpoint_path} is intact")
 
-    def backward(self, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
-        """Write every parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `forward(obs, cache)`.
+    def iteration_done(self, iteration: int, global_step: int) -> None:
+        self.progress.message(f"iteration {iteration} done: global_step={global_step}, "
+                              f"SPS={int(global_step / (time.time() - self.start_time))}")
 
-        Training computes its gradients by hand (autograd's per-op overhead dominates at these sizes);
-        tests/test_gradients.py checks this against autograd.
-        """
-        mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = self._heads
-        activations, means, fallback, weight = (cache[key] for key in ("activations", "means", "fallback", "weight"))
-        # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
-        grad_means = weight[..., None] * grad_mean  # [n, B, A]
-        torch.mm(weight, grad_log_std, out=log_stds.grad)  # sum over the batch of w_i dL/dlog_std
-        hidden = activations[-1]
-        torch.bmm(hidden.transpose(1, 2), grad_means, out=mean_weight.grad)
-        torch.sum(grad_means, 1, keepdim=True, out=mean_bias.grad)
-        grad_hidden = torch.bmm(grad_means, mean_weight.transpose(1, 2))  # [n, B, H]
-        if fallback.shape[0]:
-            # Fallback k (net k >= 2) acts through C_k = l_k C_{k-1} + (1 - l_k) b_k, and C_n changes by
-            # later_k = prod_{j>k} l_j per unit of C_k, so with g = (dL/dmean, dL/dlog_std) and z_k = logit(l_k):
-            #   dL/dz_k = l_k (1 - l_k) later_k <g, C_{k-1} - b_k> = S_{k-1} - l_k S_k,
-            # where S_k = sum_{i<=k} w_i <g, b_i> = later_k <g, C_k> (a cumulative sum, no division).
-            weighted_q = torch.addcmul((grad_means * means).sum(-1), weight, log_stds @ grad_log_std.T)  # [n, B]
-            partial_sums = weighted_q.cumsum_(0)  # S_1..S_n
-            grad_logit = torch.addcmul(partial_sums[:-1], fallback, partial_sums[1:], value=-1.0).unsqueeze(-1)
-            torch.bmm(hidden[1:].transpose(1, 2), grad_logit, out=fallback_weight.grad)
-            torch.sum(grad_logit, 1, keepdim=True, out=fallback_bias.grad)
-            grad_hidden[1:].baddbmm_(grad_logit, fallback_weight.transpose(1, 2))
-        for i in reversed(range(len(self._hidden))):
-            weight_i, bias_i = self._hidden[i]
-            below = activations[i] if i else activations[0].expand(grad_hidden.shape[0], -1, -1)  # obs, shared
-            grad_z = tanh_backward(grad_hidden, hidden)  # g tanh' = g (1 - h^2)
-            torch.bmm(below.transpose(1, 2), grad_z, out=weight_i.grad)
-            torch.sum(grad_z, 1, keepdim=True, out=bias_i.grad)
-            if i:
-                grad_hidden = torch.bmm(grad_z, weight_i.transpose(1, 2))
-            hidden = below
-        if self.num_frozen:
-            for _, param, first_net in self.base_net_parameters():
-                param.grad[: self.frozen_rows(first_net)] = 0.0
+    # --- evaluation (SPEC §6) ---
+    def evaluate(self, step: int, actor: CascadeActor, members: bool = False) -> None:
+        """Freeze the current policy and observation statistics and evaluate them (or each net alone)."""
+        if self.runner is None:
+            return
+        stats = obs_statistics(self.envs)
+        for kind in range(1, actor.size + 1) if members else [0]:
+            self.runner.submit(step, kind, actor, stats)
+        self.log_evaluations()
 
-    def member(self, obs: torch.Tensor, net: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and log-std of base net `net` (0-based) acting alone."""
-        hidden = obs
-        for weight, bias in zip(self.hidden_weights, self.hidden_biases):
-            hidden = torch.tanh(torch.addmm(bias[net], hidden, weight[net]))
-        mean = torch.addmm(self.mean_bias[net], hidden, self.mean_weight[net])
-        return mean, self.log_std[net].expand_as(mean)
+    def log_evaluations(self, wait: bool = False) -> None:
+        if self.runner is None:
+            return
+        for step, kind, returns, fallback_std in self.runner.results(wait):
+            if kind == 0:
+                self.writer.add_scalar("eval/episodic_return", returns.mean(), step)
+                self.writer.add_scalar("eval/episodic_return_std", returns.std(), step)
+                for j, std in enumerate(fallback_std.mean(0)):
+                    self.writer.add_scalar(f"cascade/fallback_std/net_{j + 2}", std, step)
+                self.progress.last_eval = float(returns.mean())
+                self.progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} "
+                                      f"± {returns.std():.1f}")
+            else:
+                self.writer.add_scalar(f"members/return/net_{kind}", returns.mean(), step)
+                self.progress.message(f"global_step={step}, members/return/net_{kind}={returns.mean():.1f}")
 
+    # --- checkpoints ---
+    def maybe_checkpoint(self, iteration: int, update: int, updates_per_iteration: int, global_step: int,
+                         actor: CascadeActor, critic: nn.Module, optimizer: torch.optim.Optimizer,
+                         next_obs: np.ndarray, next_done: np.ndarray) -> None:
+        """At the end of an iteration (after evaluating each net alone) and every --checkpoint-every steps."""
+        args = self.args
+        end_of_iteration = update == updates_per_iteration
+        due = args.checkpoint_every and global_step - self.last_checkpoint_step >= args.checkpoint_every
+        self.log_evaluations(wait=end_of_iteration or bool(due))  # finished evaluations; before a checkpoint, all
+        if not (end_of_iteration or due):
+            return
+        if end_of_iteration and args.eval_members:
+            self.evaluate(global_step, actor, members=True)
+            self.log_evaluations(wait=True)
+        payload = {
+            "format": "cascade_ppo_continuous/2", "args": asdict(args), "obs_dim": self.obs_dim,
+            "act_dim": self.act_dim, "iteration": iteration, "updates_done": update, "global_step": global_step,
+            "elapsed": time.time() - self.start_time,
+            "actor": actor.state_dict(), "actor_size": actor.size, "num_frozen": actor.num_frozen,
+            "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
+            "obs_stats": obs_statistics(self.envs), "env_states": self.envs.call("get_state"),
+            "next_obs": next_obs.copy(), "next_done": next_done.copy(), "rng": rng_states(),
+            "eval_calls": 0 if self.runner is None else self.runner.calls,
+        }
+        save_checkpoint(self.checkpoint_path, payload)
+        if end_of_iteration:
+            atomic_copy(self.checkpoint_path, os.path.join(self.run_dir, f"iteration_{iteration}.pt"))
+        self.last_checkpoint_step = global_step
 
-class TanhMLP(nn.Module):
-    """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L, weights stored [in, out], orthogonal init (CleanRL)."""
-
-    def __init__(self, sizes: list[int], gains: list[float]):
-        super().__init__()
-        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
-        for d_in, d_out, gain in zip(sizes[:-1], sizes[1:], gains):
-            weight, bias = orthogonal_linear(d_in, d_out, gain)
-            self.weights.append(nn.Parameter(weight))
-            self.biases.append(nn.Parameter(bias[0]))
-        self._cache_layers()
-
-    def _cache_layers(self) -> None:
-        # plain references for the hot path (ParameterList access costs ~1 us per lookup)
-        self._layers = tuple(zip(self.weights, self.biases))
-
-    def _apply(self, fn, recurse=True):  # .to(device) and friends may swap the Parameters
-        module = super()._apply(fn, recurse)
-        self._cache_layers()
-        return module
-
-    def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
-        """Output [B, out]; appends each hidden activation to `hidden` when given (for `backward`)."""
-        *layers, (last_weight, last_bias) = self._layers
-        for weight, bias in layers:
-            x = torch.tanh(torch.addmm(bias, x, weight))
-            if hidden is not None:
-                hidden.append(x)
-        return torch.addmm(last_bias, x, last_weight)
-
-    def backward(self, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
-        """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `forward(x, hidden)`."""
-        inputs = [x, *hidden]
-        for i in reversed(range(len(self._layers))):
-            weight, bias = self._layers[i]
-            torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
-            torch.sum(grad_output, 0, out=bias.grad)
-            if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2), with g = dL/dz W^T
-                grad_output = tanh_backward(torch.mm(grad_output, weight.T), inputs[i])
-
-
-def make_critic(obs_dim: int) -> TanhMLP:
-    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh), recreated at every Cascade iteration."""
-    return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
-
-
-def count_parameters(*modules: nn.Module) -> int:
-    return sum(p.numel() for m in modules for p in m.parameters())
-
-
-def share_one_buffer(params: list[nn.Parameter]) -> nn.Parameter:
-    """Make every parameter, and its .grad, a view into one flat buffer; return that buffer as a Parameter.
-
-    The optimizer then updates a single tensor and the gradient norm is one reduction, instead of
-    one small op per parameter. Values are unchanged; the hand-written backward overwrites the .grad
-    views every minibatch (so there is no zero_grad)."""
-    flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
-    flat.grad = torch.zeros_like(flat)
-    offset = 0
-    for p in params:
-        p.data = flat.data[offset : offset + p.numel()].view_as(p)
-        p.grad = flat.grad[offset : offset + p.numel()].view_as(p)
-        offset += p.numel()
-    return flat
-
-
-def clip_grad_norm(flat: nn.Parameter, max_norm: float) -> None:
-    """torch.nn.utils.clip_grad_norm_ on the one gradient buffer: scale by min(1, max_norm / (norm + 1e-6))."""
-    flat.grad.mul_(torch.clamp(max_norm / (flat.grad.norm() + 1e-6), max=1.0))
-
-
-LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
-
-
-def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
-    return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
-
-
-def ppo_loss_gradients(
-    mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor, old_logprob: torch.Tensor,
-    advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor, args: Args,
-) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
-    """CleanRL's PPO loss on one minibatch, and its gradient w.r.t. the nets' outputs.
-
-    mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
-    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss terms, log-ratio and ratio.
-    """
-    batch = len(value)
-    # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
-    inv_std = torch.exp(-log_std)
-    u = (actions - mean) * inv_std
-    u2 = u * u
-    newlogprob = (u2.mul(-0.5) - log_std).sum(1) - LOG_SQRT_2PI * u.shape[1]
-    logratio = newlogprob - old_logprob
-    ratio = logratio.exp()
-    if args.norm_adv:
-        adv_std, adv_mean = torch.std_mean(advantages)
-        advantages = (advantages - adv_mean) / (adv_std + 1e-8)
-
-    # Policy loss mean(max(-A r, -A clip(r, 1-eps, 1+eps))). Its gradient w.r.t. r is -A/B wherever
-    # the unclipped term is the max (inside the clip range both terms are equal: autograd's halves
-    # add up to the same) and 0 elsewhere; dr/dlogprob = r, so dL/dlogprob = (-A r)/B there.
-    pg_loss1 = -advantages * ratio
-    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
-    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
-    grad_logprob = (pg_loss1 * (pg_loss1 >= pg_loss2)).div_(batch).unsqueeze(1)
-    # dlogprob/dmean = u / std, dlogprob/dlog_std = u^2 - 1
-    grad_mean = grad_logprob * u * inv_std
-    grad_log_std = grad_logprob * u2 - grad_logprob
-
-    # Value loss 0.5 mean(max((v - R)^2, (v_clip - R)^2)) with v_clip = v_old + clip(v - v_old, -eps, eps);
-    # the clipped branch passes a gradient only where v - v_old is inside the clip range.
-    if args.clip_vloss:
-        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
-        v_loss_unclipped, v_loss_clipped = (value - returns) ** 2, (v_clipped - returns) ** 2
-        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
-        inside = (value - old_value).abs() <= args.clip_coef
-        grad_v = torch.where(v_loss_unclipped >= v_loss_clipped, value - returns,
-                             torch.where(inside, v_clipped - returns, 0.0))
-    else:
-        v_loss = 0.5 * ((value - returns) ** 2).mean()
-        grad_v = value - returns
-    grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
-
-    loss = pg_loss + args.vf_coef * v_loss
-    if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
-        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
-        grad_log_std -= args.ent_coef / batch
-    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "logratio": logratio, "ratio": ratio}
-    return losses, grad_mean, grad_log_std, grad_value
-
-
-def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
-    """PPO's Adam (eps 1e-5); the fused kernel updates all parameters at once, ~3x faster on CPU."""
-    return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
-
-
-def adam_step(optimizer: torch.optim.Adam) -> None:
-    """`optimizer.step()` for our one flat parameter: a direct call of the fused kernel that step() ends in.
-
-    step() spends ~30 us per call grouping tensors and checking options (~4x the kernel itself) in a
-    tight loop, and measured ~100 us per minibatch inside the training loop: ~30 ms of an update's 320
-    minibatches. The state stays in the optimizer as usual (checkpoints unchanged);
-    tests/test_gradients.py checks this against step() bit for bit, so a torch that changes the kernel's
-    signature fails there.
-    """
-    group = optimizer.param_groups[0]
-    (param,) = group["params"]
-    state = optimizer.state.get(param)
-    if not state:  # the first step creates the state
-        optimizer.step()
-        return
-    state["step"] += 1  # as step() does before the kernel
-    beta1, beta2 = group["betas"]
-    torch._fused_adam_([param], [param.grad], [state["exp_avg"]], [state["exp_avg_sq"]], [], [state["step"]],
-                       amsgrad=False, lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"],
-                       eps=group["eps"], maximize=False)
-
-
-def compute_gae(rewards: np.ndarray, dones: np.ndarray, values: np.ndarray, next_value: np.ndarray,
-                next_done: np.ndarray, gamma: float, gae_lambda: float) -> np.ndarray:
-    """Generalized advantage estimates [T, E]. dones[t] marks that obs[t] began a new episode, so the
-    step before it does not bootstrap (CleanRL: termination and truncation alike). Plain numpy: the
-    backward recursion is 2048 tiny steps, far cheaper than as tensor ops."""
-    advantages = np.zeros_like(rewards)
-    last = np.zeros_like(next_value)
-    for t in reversed(range(len(rewards))):
-        not_done = 1.0 - (next_done if t == len(rewards) - 1 else dones[t + 1])
-        next_v = next_value if t == len(rewards) - 1 else values[t + 1]
-        delta = rewards[t] + gamma * next_v * not_done - values[t]
-        last = delta + gamma * gae_lambda * not_done * last
-        advantages[t] = last
-    return advantages
+    def close(self, global_step: int, actor: CascadeActor) -> None:
+        if self.runner is not None:
+            if global_step % self.args.eval_every >= self.args.num_envs:
+                self.evaluate(global_step, actor)  # the final policy, if the last step was not an eval step
+            self.log_evaluations(wait=True)
+            self.runner.close()
+        self.writer.close()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -875,7 +1383,6 @@ def record_video(actor: CascadeActor, stats, env_id: str, path: str, determinist
     env.close()
     return total
 
-
 # ----------------------------------------------------------------------------------------------
 # Checkpoints: one file with everything needed to continue and to act
 # ----------------------------------------------------------------------------------------------
@@ -889,6 +1396,16 @@ def save_checkpoint(path: str, payload: dict) -> None:
         torch.save(payload, f)
         f.flush()
         os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_copy(source: str, path: str) -> None:
+    """Copy `source` to `path` as `save_checkpoint` writes: temp file, fsync, rename."""
+    tmp = f"{path}.tmp"
+    with open(source, "rb") as src, open(tmp, "wb") as dst:
+        shutil.copyfileobj(src, dst)
+        dst.flush()
+        os.fsync(dst.fileno())
     os.replace(tmp, path)
 
 
@@ -930,6 +1447,7 @@ class Progress:
         self.tty = sys.stdout.isatty()
         self.last_print = 0.0
         self.last_eval: float | None = None
+        self.note = ""  # e.g. that a fast path was switched off
 
     def update(self, step: int, sps: float, size: int, force: bool = False) -> None:
         now = time.time()
@@ -939,7 +1457,7 @@ class Progress:
         eta = (self.total - step) / max(sps, 1e-9)
         ev = "-" if self.last_eval is None else f"{self.last_eval:.1f}"
         line = (f"{step:>10,}/{self.total:,} steps ({100 * step / self.total:5.1f}%) | {sps:6.0f} SPS | "
-                f"{size} net(s) | eval {ev} | ETA {time.strftime('%H:%M:%S', time.gmtime(eta))}")
+                f"{size} net(s) | eval {ev} | ETA {time.strftime('%H:%M:%S', time.gmtime(eta))}{self.note}")
         print(f"\r{line}" if self.tty else line, end="" if self.tty else "\n", flush=True)
 
     def message(self, text: str) -> None:
@@ -950,7 +1468,7 @@ class Progress:
 
 
 # ----------------------------------------------------------------------------------------------
-# Training
+# Input checks, seeding
 # ----------------------------------------------------------------------------------------------
 def validate(args: Args) -> None:
     """Reject bad input with one clear line before anything is created."""
@@ -1000,289 +1518,6 @@ def set_rng_states(states: dict) -> None:
     np.random.set_state(states["numpy"])
     random.setstate(states["python"])
 
-
-@torch.no_grad()  # gradients are written out by hand (ppo_loss_gradients, CascadeActor.backward): no autograd
-def train(args: Args, checkpoint: dict | None = None,
-          on_iteration_start: Callable[[dict], None] | None = None) -> dict:
-    """Runs Cascade (from scratch, or continuing `checkpoint`); returns the final actor, critic, run folder.
-    `on_iteration_start` sees the fresh state of each iteration (used by the tests)."""
-    validate(args)
-    torch.set_num_threads(args.torch_threads)
-    seed_everything(args.seed, args.torch_deterministic)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-
-    envs = make_vector_env(args)
-    obs_dim = int(np.prod(envs.single_observation_space.shape))
-    act_dim = int(np.prod(envs.single_action_space.shape))
-
-    batch_size = args.num_envs * args.num_steps
-    minibatch_size = batch_size // args.num_minibatches
-    updates_per_iteration = args.k // batch_size
-    total_updates = args.n * updates_per_iteration
-    if args.k % batch_size and checkpoint is None:
-        print(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
-              f"{updates_per_iteration} updates = {updates_per_iteration * batch_size} steps")
-
-    from torch.utils.tensorboard import SummaryWriter
-
-    if checkpoint is None:
-        run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
-        run_dir = os.path.join(args.track_dir, run_name)
-        writer = SummaryWriter(run_dir)
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
-        )
-    else:
-        run_dir = os.path.dirname(checkpoint["path"])
-        # purge_step hides whatever the killed run logged after its last checkpoint
-        writer = SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1)
-    checkpoint_path = os.path.join(run_dir, CHECKPOINT_NAME)
-
-    actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init).to(device)
-    if args.start_full:
-        for _ in range(args.n):
-            actor.add_base_net()
-    runner = None
-    if args.eval_every:
-        runner = EvaluationRunner(args, obs_dim, act_dim, calls=0 if checkpoint is None else checkpoint["eval_calls"])
-    progress = Progress(args.n * updates_per_iteration * batch_size, args.quiet)
-
-    def log_evaluations(wait: bool = False) -> None:
-        for step, kind, returns, fallback_std in runner.results(wait):
-            if kind == 0:
-                writer.add_scalar("eval/episodic_return", returns.mean(), step)
-                writer.add_scalar("eval/episodic_return_std", returns.std(), step)
-                for j, std in enumerate(fallback_std.mean(0)):
-                    writer.add_scalar(f"cascade/fallback_std/net_{j + 2}", std, step)
-                progress.last_eval = float(returns.mean())
-                progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
-            else:
-                writer.add_scalar(f"members/return/net_{kind}", returns.mean(), step)
-                progress.message(f"global_step={step}, members/return/net_{kind}={returns.mean():.1f}")
-
-    def evaluate(step: int, members: bool = False) -> None:
-        """Freeze the current policy and observation statistics and evaluate them (SPEC §6)."""
-        stats = obs_statistics(envs)
-        for kind in range(1, actor.size + 1) if members else [0]:
-            runner.submit(step, kind, actor, stats)
-        log_evaluations()
-
-    # Rollout storage, preallocated once, numpy: acting runs in numpy and the env takes and gives numpy
-    obs = np.zeros((args.num_steps, args.num_envs, obs_dim), dtype=np.float32)
-    actions = np.zeros((args.num_steps, args.num_envs, act_dim), dtype=np.float32)
-    rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
-    dones = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
-
-    critic: nn.Module | None = None
-    optimizer: torch.optim.Optimizer | None = None
-
-    def make_checkpoint(iteration: int, updates_done: int) -> dict:
-        return {
-            "format": "cascade_ppo_continuous/2", "args": asdict(args), "obs_dim": obs_dim, "act_dim": act_dim,
-            "iteration": iteration, "updates_done": updates_done, "global_step": global_step,
-            "elapsed": time.time() - start_time,
-            "actor": actor.state_dict(), "actor_size": actor.size, "num_frozen": actor.num_frozen,
-            "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
-            "obs_stats": obs_statistics(envs), "env_states": envs.call("get_state"),
-            "next_obs": next_obs.copy(), "next_done": next_done.copy(), "rng": rng_states(),
-            "eval_calls": 0 if runner is None else runner.calls,
-        }
-
-    if checkpoint is None:
-        global_step, start_iteration, start_update = 0, 1, 1
-        start_time = time.time()
-        next_obs = envs.reset(seed=args.seed)[0].astype(np.float32)
-        next_done = np.zeros(args.num_envs, dtype=np.float32)
-        if runner is not None:
-            evaluate(0)
-    else:
-        global_step = checkpoint["global_step"]
-        start_time = time.time() - checkpoint["elapsed"]
-        envs.reset(seed=args.seed)  # sets up the vector env; then every env gets its saved state back
-        envs.call("set_state", checkpoint["env_states"])
-        next_obs = np.asarray(checkpoint["next_obs"], dtype=np.float32)
-        next_done = checkpoint["next_done"]
-        actor = actor_from_checkpoint(checkpoint, device)
-        start_iteration, start_update = checkpoint["iteration"], checkpoint["updates_done"] + 1
-        if start_update > updates_per_iteration:  # saved at the end of an iteration
-            start_iteration, start_update = start_iteration + 1, 1
-        set_rng_states(checkpoint["rng"])
-        progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
-    last_checkpoint_step = global_step
-
-    for iteration in range(start_iteration, args.n + 1):
-        resuming_mid_iteration = checkpoint is not None and iteration == start_iteration and start_update > 1
-        if resuming_mid_iteration:
-            rng = torch.get_rng_state()  # the critic's init draws must not shift the restored RNG stream
-            critic = make_critic(obs_dim).to(device)
-            torch.set_rng_state(rng)
-            critic.load_state_dict(checkpoint["critic"])
-            params = share_one_buffer([*actor.parameters(), *critic.parameters()])
-            optimizer = make_optimizer([params], args.learning_rate)
-            optimizer.load_state_dict(checkpoint["optimizer"])
-        else:
-            # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
-            if not args.start_full:
-                actor.add_base_net()
-            if args.freeze_previous:
-                actor.freeze_below(actor.size - 1)
-            critic = make_critic(obs_dim).to(device)
-            params = share_one_buffer([*actor.parameters(), *critic.parameters()])
-            optimizer = make_optimizer([params], args.learning_rate)
-        size = actor.size
-        n_params = count_parameters(actor, critic)
-        writer.add_scalar("cascade/size", size, global_step)
-        writer.add_scalar("cascade/parameters", n_params, global_step)
-        progress.message(f"iteration {iteration}/{args.n}: {size} base net(s), {n_params} parameters (actor + critic)")
-        if on_iteration_start is not None:
-            on_iteration_start(
-                {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}
-            )
-
-        for update in range(start_update if iteration == start_iteration else 1, updates_per_iteration + 1):
-            if args.lr_schedule == "cyclic":
-                frac = 1.0 - (update - 1.0) / updates_per_iteration
-            elif args.lr_schedule == "global":
-                frac = 1.0 - ((iteration - 1) * updates_per_iteration + update - 1.0) / total_updates
-            else:
-                frac = 1.0
-            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
-
-            # --- rollout: only the actor runs per step. The nets do not change during a rollout, so
-            # values, log-probs and fallback statistics are computed for the whole batch afterwards. ---
-            policy = actor.numpy_policy()  # the weights do not change during a rollout
-            noise = torch.randn((args.num_steps, args.num_envs, act_dim))  # torch's RNG stream, used from numpy
-            noise_np = noise.numpy()
-            for step in range(args.num_steps):
-                global_step += args.num_envs
-                obs[step] = next_obs
-                dones[step] = next_done
-                mean, log_std = policy(next_obs)
-                action = mean + np.exp(log_std) * noise_np[step]
-                actions[step] = action
-
-                next_obs, reward, terminations, truncations, infos = envs.step(action)
-                rewards[step] = reward
-                next_obs = next_obs.astype(np.float32)
-                next_done = np.logical_or(terminations, truncations).astype(np.float32)
-                if "final_info" in infos and "episode" in infos["final_info"]:
-                    finished = infos["final_info"]["_episode"]
-                    for ret, length in zip(infos["final_info"]["episode"]["r"][finished],
-                                           infos["final_info"]["episode"]["l"][finished]):
-                        writer.add_scalar("charts/episodic_return", ret, global_step)
-                        writer.add_scalar("charts/episodic_length", length, global_step)
-                if runner is not None and global_step % args.eval_every < args.num_envs:
-                    evaluate(global_step)
-
-            b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
-            _, b_log_std, batch_fallback, batch_contribution = actor(b_obs)
-            # log N(mean + std*noise; mean, std) only depends on the noise and the log-std (this batched
-            # forward gives the acting log-std again, up to float rounding: the weights did not change)
-            b_logprobs = (-0.5 * noise.to(device).reshape(-1, act_dim).pow(2) - b_log_std - LOG_SQRT_2PI).sum(-1)
-            values = critic(b_obs).reshape(args.num_steps, args.num_envs)
-            next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)
-            advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
-                                     args.gamma, args.gae_lambda)
-            b_advantages = torch.as_tensor(advantages, device=device).reshape(-1)
-            b_values = values.reshape(-1)
-            b_returns = b_advantages + b_values
-            b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
-
-            # --- PPO update of the whole stack and the critic ---
-            # one [B, D] tensor holding all a minibatch needs, so each minibatch is a single gather
-            batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
-                               b_values[:, None]], dim=1)
-            ratios = []  # of every minibatch, for the clip fraction
-            # inference mode skips even the autograd bookkeeping that no_grad still does (~15% per op here)
-            with torch.inference_mode():
-                for _epoch in range(args.update_epochs):
-                    b_inds = torch.randperm(batch_size, device=device)
-                    for start in range(0, batch_size, minibatch_size):
-                        minibatch = torch.index_select(batch, 0, b_inds[start : start + minibatch_size])
-                        mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
-                        mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
-                        actor_cache, critic_hidden = {}, []
-                        mean, log_std, _, _ = actor(mb_obs, actor_cache)
-                        newvalue = critic(mb_obs, critic_hidden).squeeze(1)
-                        losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
-                            mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
-                        ratios.append(losses["ratio"])
-
-                        actor.backward(actor_cache, grad_mean, grad_log_std)
-                        critic.backward(mb_obs, critic_hidden, grad_value)
-                        clip_grad_norm(params, args.max_grad_norm)
-                        adam_step(optimizer)
-
-                    # CleanRL's diagnostics, from the epoch's last minibatch
-                    logratio, ratio = losses["logratio"], losses["ratio"]
-                    old_approx_kl = (-logratio).mean()
-                    approx_kl = ((ratio - 1) - logratio).mean()
-                    entropy_loss = gaussian_entropy(log_std).mean()
-
-                    if args.target_kl is not None and approx_kl > args.target_kl:
-                        break
-
-            y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
-            var_y = np.var(y_true)
-            explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
-
-            # --- logging (CleanRL names + the fallback metrics of SPEC §6) ---
-            writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
-            writer.add_scalar("losses/value_loss", losses["value_loss"].item(), global_step)
-            writer.add_scalar("losses/policy_loss", losses["policy_loss"].item(), global_step)
-            writer.add_scalar("losses/entropy", entropy_loss.item(), global_step)
-            writer.add_scalar("losses/old_approx_kl", old_approx_kl.item(), global_step)
-            writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
-            clipfrac = ((torch.cat(ratios) - 1.0).abs() > args.clip_coef).float().mean()
-            writer.add_scalar("losses/clipfrac", clipfrac.item(), global_step)
-            writer.add_scalar("losses/explained_variance", explained_var, global_step)
-            # means over the rollout batch, of the lambdas/weights the acting policy used
-            mean_fallback = batch_fallback.mean(1)
-            mean_weight = batch_contribution.mean(1)
-            for j, lam in enumerate(mean_fallback.tolist()):
-                writer.add_scalar(f"cascade/fallback/net_{j + 2}", lam, global_step)
-            for j, w in enumerate(mean_weight.tolist()):
-                writer.add_scalar(f"cascade/contribution/net_{j + 1}", w, global_step)
-            writer.add_scalar("cascade/fallback_product", mean_weight[0].item(), global_step)
-            sps = global_step / (time.time() - start_time)
-            writer.add_scalar("charts/SPS", int(sps), global_step)
-            writer.add_scalar("cascade/size", size, global_step)
-            progress.update(global_step, sps, size)
-
-            # --- non-finite guard: stop before anything bad is written to the checkpoint ---
-            if not math.isfinite(losses["loss"].item()) or not torch.isfinite(params).all():
-                writer.close()
-                fail(f"non-finite loss or parameters at global_step={global_step} (iteration {iteration}, update "
-                     f"{update}); the last good checkpoint {checkpoint_path} is intact")
-
-            if runner is not None:  # finished evaluations; before a checkpoint, all of them
-                log_evaluations(wait=update == updates_per_iteration or (
-                    args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every))
-            if update == updates_per_iteration:
-                if runner is not None and args.eval_members:
-                    evaluate(global_step, members=True)
-                    log_evaluations(wait=True)
-                save_checkpoint(checkpoint_path, make_checkpoint(iteration, update))
-                shutil.copyfile(checkpoint_path, os.path.join(run_dir, f"iteration_{iteration}.pt"))
-                last_checkpoint_step = global_step
-            elif args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every:
-                save_checkpoint(checkpoint_path, make_checkpoint(iteration, update))
-                last_checkpoint_step = global_step
-
-        progress.message(f"iteration {iteration} done: global_step={global_step}, "
-                         f"SPS={int(global_step / (time.time() - start_time))}")
-
-    if runner is not None:
-        if global_step % args.eval_every >= args.num_envs:
-            evaluate(global_step)  # the final policy, if the last step was not an eval step
-        log_evaluations(wait=True)
-        runner.close()
-    final_stats = obs_statistics(envs)
-    envs.close()
-    writer.close()
-    return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step,
-            "obs_stats": final_stats}
 
 
 # ----------------------------------------------------------------------------------------------

@@ -116,11 +116,31 @@ def test_shared_buffer_keeps_values_and_clipping_matches_torch():
     assert not torch.equal(params[0], before[0])
 
 
+@pytest.mark.parametrize("variant", ARG_VARIANTS)
+def test_script_loss_is_cleanrls(variant):
+    """The script's ppo_loss (section 1, what users edit) is CleanRL's loss: value and gradient."""
+    args = cpc.Args(**variant)
+    actor, critic = make_actor(3, seed=4), cpc.make_critic(5)
+    randomize(critic, 5)
+    obs, actions, old_logprob, adv, returns, old_value = minibatch(actor, critic, 5, 3, seed=7)
+    params = [*actor.parameters(), *critic.parameters()]
+    mean, log_std, *_ = actor(obs)
+    value = critic(obs).squeeze(1)
+    ours, parts = cpc.ppo_loss(mean, log_std, value, actions, old_logprob, adv, returns, old_value, args)
+    reference, ratio = cleanrl_loss(mean, log_std, value, actions, old_logprob, adv, returns, old_value, args)
+    torch.testing.assert_close(ours, reference, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(parts["ratio"], ratio)
+    for got, want in zip(torch.autograd.grad(ours, params, allow_unused=True, retain_graph=True),
+                         torch.autograd.grad(reference, params, allow_unused=True)):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
 @pytest.mark.parametrize("n,layers,frozen,variant", [
     (1, 2, 0, 0), (2, 2, 0, 0), (4, 1, 0, 1), (6, 2, 0, 0), (6, 2, 0, 3), (5, 3, 4, 0), (3, 2, 2, 2),
 ])
 def test_cascade_gradients_match_autograd_through_the_plain_loop(n, layers, frozen, variant):
-    """CascadeActor.backward + ppo_loss_gradients against autograd through the net-by-net recursion."""
+    """The fast path's hand-written gradients (ppo_loss_gradients, cascade_backward, mlp_backward) against
+    autograd through the script's ppo_loss on the net-by-net recursion of the tests."""
     args = cpc.Args(**ARG_VARIANTS[variant])
     actor = make_actor(n, layers=layers, seed=n)  # weights randomized away from the init
     actor.freeze_below(frozen)
@@ -131,8 +151,11 @@ def test_cascade_gradients_match_autograd_through_the_plain_loop(n, layers, froz
     params = [*actor.parameters(), *critic.parameters()]
 
     mean, log_std, *_ = reference_forward(actor, obs)
-    ref_loss, ratio = cleanrl_loss(mean, log_std, critic(obs).squeeze(1), actions, old_logprob, adv, returns,
+    ref_loss, parts = cpc.ppo_loss(mean, log_std, critic(obs).squeeze(1), actions, old_logprob, adv, returns,
                                    old_value, args)
+    ratio = parts["ratio"]
+    clipped = ((ratio - 1).abs() > args.clip_coef).float().mean()
+    assert 0.05 < clipped < 0.95, "the minibatch should exercise both sides of the clip"
     grads = torch.autograd.grad(ref_loss, params, allow_unused=True)  # n = 1: the fallback head is empty
     ref_grads = {p: torch.zeros_like(p) if g is None else g for p, g in zip(params, grads)}
     for _, p, first_net in actor.base_net_parameters():  # frozen nets get no gradient
@@ -141,16 +164,31 @@ def test_cascade_gradients_match_autograd_through_the_plain_loop(n, layers, froz
     flat = cpc.share_one_buffer(params)
     flat.grad.fill_(float("nan"))  # every gradient entry must be written
     with torch.no_grad():
-        cache, critic_hidden = {}, []
-        mean, log_std, _, _ = actor(obs, cache)
-        value = critic(obs, critic_hidden).squeeze(1)
-        losses, grad_mean, grad_log_std, grad_value = cpc.ppo_loss_gradients(
-            mean, log_std, value, actions, old_logprob, adv, returns, old_value, args)
-        actor.backward(cache, grad_mean, grad_log_std)
-        critic.backward(obs, critic_hidden, grad_value)
-    torch.testing.assert_close(losses["loss"], ref_loss.detach(), rtol=1e-9, atol=1e-12)
+        loss, _ = cpc.fast_gradients(actor, critic, (obs, actions, old_logprob, adv, returns, old_value), args)
+    torch.testing.assert_close(loss, ref_loss.detach(), rtol=1e-9, atol=1e-12)
     for p in params:
         torch.testing.assert_close(p.grad, ref_grads[p], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("n,frozen", [(1, 0), (3, 0), (4, 2)])
+def test_autograd_path_writes_the_same_gradients(n, frozen):
+    """autograd_gradients (section 1, the --autograd path) and fast_gradients (section 2) agree."""
+    args = cpc.Args()
+    actor = make_actor(n, seed=n + 10)
+    actor.freeze_below(frozen)
+    critic = cpc.make_critic(5)
+    randomize(critic, 6)
+    batch = minibatch(actor, critic, 5, 3, seed=n)
+    params = [*actor.parameters(), *critic.parameters()]
+    flat = cpc.share_one_buffer(params)
+    with torch.no_grad():
+        loss, _ = cpc.fast_gradients(actor, critic, batch, args)
+    fast = flat.grad.clone()
+    flat.grad.fill_(float("nan"))
+    with torch.no_grad():
+        auto_loss, _ = cpc.autograd_gradients(actor, critic, params, batch, args)
+    torch.testing.assert_close(auto_loss, loss, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(flat.grad, fast, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("module", [pb, cpc])

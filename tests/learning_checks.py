@@ -1,0 +1,112 @@
+"""The learning checks: one short run per script on a small task, defined once.
+
+`tests/` asserts on them; `benchmarks/learning_spread.py` runs the same configurations over many seeds,
+with learning intact and with learning broken (learning rate 0), to measure the spread the tests'
+thresholds are set from. A run on another CPU or math library is, after a few thousand updates, a
+different trajectory (floating-point order differs), so a threshold is only portable if it holds for
+every seed measured, with a wide margin, and fails for every broken run.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import cascade_ddpg  # noqa: E402
+import cascade_ppo_continuous  # noqa: E402
+import cascade_ppo_discrete  # noqa: E402
+import cascade_sac  # noqa: E402
+import ppo_baseline  # noqa: E402
+from helpers import read_scalars  # noqa: E402
+
+Curve = list[tuple[int, float]]
+
+K_INVERTED_PENDULUM = 16_384
+K_CARTPOLE = 32_768
+K_SAC, K_DDPG = 3_000, 4_000
+
+
+def eval_curve(module, args) -> Curve:
+    """Train, then read back the evaluation returns (step, mean return) the run logged."""
+    result = module.train(args)
+    return read_scalars(result["run_dir"])["eval/episodic_return"]
+
+
+def cascade_ppo_inverted_pendulum(seed: int, track_dir: str, broken: bool = False) -> Curve:
+    """Cascade PPO, 2 nets of 16K steps on InvertedPendulum-v4, evaluated every 8K steps."""
+    args = cascade_ppo_continuous.Args(
+        env_id="InvertedPendulum-v4", n=2, k=K_INVERTED_PENDULUM, eval_every=8192, eval_episodes=10,
+        track_dir=track_dir, seed=seed, quiet=True, learning_rate=0.0 if broken else 3e-4)
+    return eval_curve(cascade_ppo_continuous, args)
+
+
+def ppo_inverted_pendulum(seed: int, track_dir: str, broken: bool = False) -> Curve:
+    """The PPO baseline, 32K steps on InvertedPendulum-v4, evaluated every 8K steps."""
+    args = ppo_baseline.Args(
+        env_id="InvertedPendulum-v4", total_timesteps=2 * K_INVERTED_PENDULUM, eval_every=8192, eval_episodes=10,
+        track_dir=track_dir, seed=seed, quiet=True, learning_rate=0.0 if broken else 3e-4)
+    return eval_curve(ppo_baseline, args)
+
+
+def cascade_ppo_cartpole(seed: int, track_dir: str, broken: bool = False) -> Curve:
+    """Discrete Cascade PPO, 2 nets of 32K steps on CartPole-v1 (natively discrete, no normalization),
+    evaluated every 8K steps."""
+    args = cascade_ppo_discrete.Args(
+        env_id="CartPole-v1", n=2, k=K_CARTPOLE, eval_every=K_CARTPOLE // 4, eval_episodes=10,
+        track_dir=track_dir, seed=seed, quiet=True, learning_rate=0.0 if broken else 2.5e-4)
+    return eval_curve(cascade_ppo_discrete, args)
+
+
+def sac_pendulum(seed: int, track_dir: str, broken: bool = False) -> Curve:
+    """Cascade SAC, 2 nets of 3K steps on Pendulum-v1 (500 random steps first), evaluated every 1K steps."""
+    args = cascade_sac.Args(
+        env_id="Pendulum-v1", n=2, k=K_SAC, learning_starts=500, batch_size=128, eval_every=1000, eval_episodes=10,
+        track_dir=track_dir, seed=seed, quiet=True, policy_lr=0.0 if broken else 3e-4)
+    return eval_curve(cascade_sac, args)
+
+
+def ddpg_pendulum(seed: int, track_dir: str, broken: bool = False) -> Curve:
+    """Cascade DDPG, 2 nets of 4K steps on Pendulum-v1 (500 random steps first), evaluated every 1K steps."""
+    args = cascade_ddpg.Args(
+        env_id="Pendulum-v1", n=2, k=K_DDPG, learning_starts=500, batch_size=128, eval_every=1000, eval_episodes=10,
+        track_dir=track_dir, seed=seed, quiet=True, learning_rate=0.0 if broken else 3e-4)
+    return eval_curve(cascade_ddpg, args)
+
+
+CHECKS: dict[str, Callable[[int, str, bool], Curve]] = {
+    "cascade_ppo_inverted_pendulum": cascade_ppo_inverted_pendulum,
+    "ppo_inverted_pendulum": ppo_inverted_pendulum,
+    "cascade_ppo_cartpole": cascade_ppo_cartpole,
+    "sac_pendulum": sac_pendulum,
+    "ddpg_pendulum": ddpg_pendulum,
+}
+
+
+def final_return(curve: Curve) -> float:
+    """The last evaluation's mean return."""
+    return curve[-1][1]
+
+
+def mean_of_last_three(curve: Curve) -> float:
+    """Mean of the last three evaluations (Pendulum's evaluations swing by a few hundred)."""
+    return sum(v for _, v in curve[-3:]) / 3
+
+
+def best_with_two_nets(curve: Curve) -> float:
+    """The best evaluation after the second net was added (CartPole's returns swing between evaluations)."""
+    return max(v for s, v in curve if s > K_CARTPOLE)
+
+
+# check name -> (score of a run's evaluation curve, the threshold a learning run must reach)
+SCORES: dict[str, tuple[Callable[[Curve], float], float]] = {
+    "cascade_ppo_inverted_pendulum": (final_return, 100.0),
+    "ppo_inverted_pendulum": (final_return, 100.0),
+    "cascade_ppo_cartpole": (best_with_two_nets, 150.0),
+    "sac_pendulum": (mean_of_last_three, -600.0),
+    "ddpg_pendulum": (mean_of_last_three, -600.0),
+}
