@@ -168,8 +168,10 @@ def stacked_affine(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) ->
 @functools.lru_cache
 def at_or_above_matrix(n: int, dtype: torch.dtype = torch.float32, device: str = "cpu") -> torch.Tensor:
     """A [n, n-1] 0/1 matrix: row i is net i (1..n), column j the fallback l_j of net j (2..n); the entry
-    is 1 where j >= i, so that (matrix @ log l)_i = sum_{j>=i} log l_j."""
-    return torch.ones(n, max(n - 1, 0), dtype=dtype, device=device).triu(-1)
+    is 1 where j >= i, so that (matrix @ log l)_i = sum_{j>=i} log l_j. Cached: always a normal tensor, never
+    an inference-mode one, so autograd can use it whichever path made it first."""
+    with torch.inference_mode(False):
+        return torch.ones(n, max(n - 1, 0), dtype=dtype, device=device).triu(-1)
 
 
 def contributions(fallback_logit: torch.Tensor) -> torch.Tensor:
@@ -844,8 +846,10 @@ class FastPaths:
         twin = float64_copy(actor)
         obs = torch.as_tensor(check_obs, dtype=torch.float64)
         reference = twin(obs.to(twin.log_std.device))[:2]
-        fast = [torch.as_tensor(a) for a in numpy_policy(twin)(obs.numpy())]
-        error = relative_error(fast, [r.cpu() for r in reference])
+        reference = [r.cpu() for r in reference]
+        fast = [torch.as_tensor(np.broadcast_to(a, r.shape).copy())
+                for a, r in zip(numpy_policy(twin)(obs.numpy()), reference)]
+        error = relative_error(fast, reference)
         self.check_seconds += time.perf_counter() - start
         if error > FAST_PATH_TOLERANCE:
             self.switch_off("acting", f"the numpy acting forward (numpy_policy) differs from CascadeActor.forward "

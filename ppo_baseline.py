@@ -4,6 +4,11 @@ Equivalent to CleanRL's `ppo_continuous_action.py` (same network, wrappers and h
 gymnasium 1.x, with the paper's extra baseline flags: `--hidden-size`, `--lr-schedule cyclic
 --cycle-steps` (Fig. 3: one 16-wide net whose LR restarts every 1M steps) and `--no-normalize`.
 
+Reading order as in cascade_ppo_continuous.py: `Args`; section 1, the algorithm in plain torch with
+autograd (the one definition of the math, and the place to edit it); section 2, fast paths derived
+from it and checked against it while training (an edited section 1 makes the run switch to autograd
+by itself, with a one-line warning); section 3, plumbing.
+
     python ppo_baseline.py --env-id Ant-v4 --total-timesteps 6000000
     tensorboard --logdir runs
 """
@@ -29,6 +34,7 @@ import torch
 import torch.nn as nn
 import tyro
 from gymnasium.wrappers.utils import RunningMeanStd
+from torch.distributions import Normal
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -48,6 +54,8 @@ class Args:
     """use CUDA if available (small nets are usually faster on the CPU)"""
     track_dir: str = "runs"
     """folder under which the run folder `runs/<run_name>` is created"""
+    autograd: bool = False
+    """act through the torch forward and update with autograd, no fast paths (slower; same results up to rounding)"""
 
     # Environment
     env_id: str = "Ant-v4"
@@ -118,9 +126,534 @@ class Args:
     """no progress display"""
 
 
-# ----------------------------------------------------------------------------------------------
-# Environment plumbing
-# ----------------------------------------------------------------------------------------------
+
+# ==============================================================================================
+# 1. THE ALGORITHM, in plain torch with autograd: the one definition of the math (edit it here)
+# ==============================================================================================
+class TanhMLP(nn.Module):
+    """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L, weights stored [in, out], orthogonal init (CleanRL)."""
+
+    def __init__(self, sizes: list[int], gains: list[float]):
+        super().__init__()
+        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
+        for d_in, d_out, gain in zip(sizes[:-1], sizes[1:], gains):
+            weight = torch.empty(d_out, d_in)
+            nn.init.orthogonal_(weight, gain)
+            self.weights.append(nn.Parameter(weight.T.contiguous()))
+            self.biases.append(nn.Parameter(torch.zeros(d_out)))
+
+    def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """Output [B, out]; appends each hidden activation to `hidden` when given (for the hand-written backward)."""
+        *layers, last = zip(self.weights, self.biases)
+        for weight, bias in layers:
+            x = torch.tanh(torch.addmm(bias, x, weight))
+            if hidden is not None:
+                hidden.append(x)
+        return torch.addmm(last[1], x, last[0])
+
+
+class Actor(nn.Module):
+    """Gaussian policy: mean MLP obs -> H -> H -> A (tanh) and one state-independent log-std vector."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_size: int):
+        super().__init__()
+        self.mean_net = TanhMLP([obs_dim, hidden_size, hidden_size, act_dim], [math.sqrt(2), math.sqrt(2), 0.01])
+        self.log_std = nn.Parameter(torch.zeros(1, act_dim))
+
+    def forward(self, obs: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        mean = self.mean_net(obs, hidden)
+        return mean, self.log_std.expand_as(mean)
+
+
+def make_critic(obs_dim: int) -> TanhMLP:
+    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh)."""
+    return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
+
+
+def count_parameters(*modules: nn.Module) -> int:
+    return sum(p.numel() for m in modules for p in m.parameters())
+
+
+def action_distribution(mean: torch.Tensor, log_std: torch.Tensor) -> Normal:
+    """The policy pi(.|s): a diagonal Gaussian. Acting samples it as mean + std * noise."""
+    return Normal(mean, log_std.exp(), validate_args=False)
+
+
+def ppo_loss(mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor,
+             old_logprob: torch.Tensor, advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor,
+             args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """CleanRL's PPO loss on one minibatch (ppo_continuous_action.py); returns the loss and its parts."""
+    dist = action_distribution(mean, log_std)
+    logratio = dist.log_prob(actions).sum(1) - old_logprob
+    ratio = logratio.exp()
+    if args.norm_adv:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    pg_loss1 = -advantages * ratio
+    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+    if args.clip_vloss:
+        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
+        v_loss = 0.5 * torch.max((value - returns) ** 2, (v_clipped - returns) ** 2).mean()
+    else:
+        v_loss = 0.5 * ((value - returns) ** 2).mean()
+    entropy_loss = dist.entropy().sum(1).mean()
+    loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef
+    return loss, {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy_loss, "logratio": logratio,
+                  "ratio": ratio}
+
+
+def autograd_gradients(actor: Actor, critic: TanhMLP, params: list[nn.Parameter], minibatch: tuple,
+                       args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The loss of one minibatch and its gradient by autograd, written into every parameter's .grad."""
+    obs, actions, old_logprob, advantages, returns, old_value = minibatch
+    with torch.enable_grad():
+        mean, log_std = actor(obs)
+        loss, parts = ppo_loss(mean, log_std, critic(obs).squeeze(1), actions, old_logprob, advantages, returns,
+                               old_value, args)
+        grads = torch.autograd.grad(loss, params, allow_unused=True)
+    for param, grad in zip(params, grads):
+        param.grad.copy_(grad) if grad is not None else param.grad.zero_()
+    return loss.detach(), {key: value.detach() for key, value in parts.items()}
+
+
+def compute_gae(rewards: np.ndarray, dones: np.ndarray, values: np.ndarray, next_value: np.ndarray,
+                next_done: np.ndarray, gamma: float, gae_lambda: float) -> np.ndarray:
+    """Generalized advantage estimates [T, E]. dones[t] marks that obs[t] began a new episode, so the
+    step before it does not bootstrap (CleanRL: termination and truncation alike). Plain numpy: the
+    backward recursion is 2048 tiny steps, far cheaper than as tensor ops."""
+    advantages = np.zeros_like(rewards)
+    last = np.zeros_like(next_value)
+    for t in reversed(range(len(rewards))):
+        not_done = 1.0 - (next_done if t == len(rewards) - 1 else dones[t + 1])
+        next_v = next_value if t == len(rewards) - 1 else values[t + 1]
+        delta = rewards[t] + gamma * next_v * not_done - values[t]
+        last = delta + gamma * gae_lambda * not_done * last
+        advantages[t] = last
+    return advantages
+
+
+@torch.no_grad()  # autograd is switched on where a gradient is taken (autograd_gradients, FastPaths checks)
+def train(args: Args, checkpoint: dict | None = None) -> dict:
+    """Runs PPO (from scratch, or continuing `checkpoint`); returns the final actor, critic and run folder."""
+    validate(args)
+    torch.set_num_threads(args.torch_threads)
+    seed_everything(args.seed, args.torch_deterministic)
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    envs = make_vector_env(args)
+    obs_dim = int(np.prod(envs.single_observation_space.shape))
+    act_dim = int(np.prod(envs.single_action_space.shape))
+    batch_size = args.num_envs * args.num_steps
+    minibatch_size = batch_size // args.num_minibatches
+    total_updates = args.total_timesteps // batch_size
+    updates_per_cycle = max(args.cycle_steps // batch_size, 1)
+    run = RunLog(args, checkpoint, obs_dim, act_dim, envs, total_updates * batch_size)
+    fast = FastPaths(enabled=not args.autograd, run=run)
+
+    actor = Actor(obs_dim, act_dim, args.hidden_size).to(device)
+    critic = make_critic(obs_dim).to(device)
+    params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+    optimizer = make_optimizer([params], args.learning_rate)
+    all_params = [*actor.parameters(), *critic.parameters()]
+    run.parameters(count_parameters(actor, critic), checkpoint is None)
+    # rollout storage, numpy: the env takes and gives numpy, and the fast acting path runs in numpy
+    obs = np.zeros((args.num_steps, args.num_envs, obs_dim), dtype=np.float32)
+    actions = np.zeros((args.num_steps, args.num_envs, act_dim), dtype=np.float32)
+    rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
+    dones = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
+
+    def unpack(rows: torch.Tensor) -> tuple[torch.Tensor, ...]:  # obs, actions, old logprob, adv., returns, value
+        mb_obs, mb_actions, rest = rows.split([obs_dim, act_dim, 4], 1)
+        return (mb_obs, mb_actions, *rest.unbind(1))
+
+    if checkpoint is None:
+        global_step, start_update = 0, 1
+        next_obs = envs.reset(seed=args.seed)[0].astype(np.float32)
+        next_done = np.zeros(args.num_envs, dtype=np.float32)
+        run.evaluate(0, actor)
+    else:  # the saved nets, optimizer, env states, RNG streams and position in the run
+        global_step, next_obs, next_done, start_update = run.restore(checkpoint, actor, critic, optimizer)
+
+    for update in range(start_update, total_updates + 1):
+        if args.lr_schedule == "global":
+            frac = 1.0 - (update - 1.0) / total_updates
+        elif args.lr_schedule == "cyclic":
+            frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle
+        else:
+            frac = 1.0
+        optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+
+        # --- rollout: the weights do not change during it; values and log-probs are computed for the
+        # whole batch afterwards ---
+        policy = fast.acting_policy(actor, np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]]),
+                                    global_step)
+        noise = torch.randn((args.num_steps, args.num_envs, act_dim))  # torch's RNG stream, used from numpy
+        noise_np = noise.numpy()
+        for step in range(args.num_steps):
+            global_step += args.num_envs
+            obs[step] = next_obs
+            dones[step] = next_done
+            mean, log_std = policy(next_obs)
+            actions[step] = mean + np.exp(log_std) * noise_np[step]  # a sample of N(mean, std)
+            next_obs, reward, terminations, truncations, infos = envs.step(actions[step])
+            rewards[step] = reward
+            next_obs = next_obs.astype(np.float32)
+            next_done = np.logical_or(terminations, truncations).astype(np.float32)
+            run.episodes(infos, global_step)
+            if args.eval_every and global_step % args.eval_every < args.num_envs:
+                run.evaluate(global_step, actor)
+
+        b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
+        b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
+        b_logprobs = action_distribution(*actor(b_obs)).log_prob(b_actions).sum(1)
+        values = critic(b_obs).reshape(args.num_steps, args.num_envs)
+        next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)
+        advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
+                                 args.gamma, args.gae_lambda)
+        b_advantages = torch.as_tensor(advantages, device=device).reshape(-1)
+        b_values = values.reshape(-1)
+        b_returns = b_advantages + b_values
+
+        # --- PPO update ---
+        # one [B, D] tensor holding all a minibatch needs, so each minibatch is a single gather
+        batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
+                           b_values[:, None]], dim=1)
+        fast.check_gradients(actor, critic, unpack(batch[:minibatch_size]), args, global_step)
+        ratios = []  # of every minibatch, for the clip fraction
+        with torch.inference_mode(fast.gradients):  # the fast path needs no autograd bookkeeping at all
+            for _epoch in range(args.update_epochs):
+                b_inds = torch.randperm(batch_size, device=device)
+                for start in range(0, batch_size, minibatch_size):
+                    minibatch = unpack(torch.index_select(batch, 0, b_inds[start : start + minibatch_size]))
+                    if fast.gradients:  # section 2: hand-written gradients, checked against the ones below
+                        loss, parts = fast_gradients(actor, critic, minibatch, args)
+                        fast_optimizer_step(params, optimizer, args.max_grad_norm)
+                    else:
+                        loss, parts = autograd_gradients(actor, critic, all_params, minibatch, args)
+                        nn.utils.clip_grad_norm_([params], args.max_grad_norm)
+                        optimizer.step()
+                    ratios.append(parts["ratio"])
+
+                # CleanRL's diagnostics, from the epoch's last minibatch
+                old_approx_kl = (-parts["logratio"]).mean()
+                approx_kl = ((parts["ratio"] - 1) - parts["logratio"]).mean()
+                if args.target_kl is not None and approx_kl > args.target_kl:
+                    break
+
+        run.update_done(global_step, optimizer, parts, old_approx_kl, approx_kl, torch.cat(ratios), b_values,
+                        b_returns, fast)
+        # --- non-finite guard: stop before anything bad is written to the checkpoint ---
+        if not math.isfinite(loss.item()) or not torch.isfinite(params).all():
+            run.stop_non_finite(global_step, update)
+        run.maybe_checkpoint(update, total_updates, global_step, actor, critic, optimizer, next_obs, next_done)
+
+    run.close(global_step, actor)
+    final_stats = obs_statistics(envs)
+    envs.close()
+    return {"actor": actor, "critic": critic, "run_dir": run.run_dir, "global_step": global_step,
+            "obs_stats": final_stats, "fast_paths": fast}
+# ==============================================================================================
+# 2. FAST PATHS: derived from section 1, checked against it while training
+# ==============================================================================================
+# A rollout acts 2048 times on one observation, and a PPO minibatch is 64 samples through nets of a
+# few thousand weights (~1 MFLOP): per-call overhead, not arithmetic, sets the speed. So acting runs in numpy on
+# copies of the weights, and the update's gradients are written out by hand (no autograd graph).
+# Both are derived from section 1 and checked against it while the run trains (`FastPaths`): the
+# acting forward at every rollout start, the gradients on the first minibatch of every update, in
+# float64 so that the check separates rounding (~1e-15) from a real difference (an edit: >= 1e-6).
+# A run whose section 1 was edited without this section says so in one line and continues through
+# section 1 (torch forward, autograd); to make it fast again, edit the matching function below until
+# the check passes (tests/test_gradients.py runs the same comparison).
+def numpy_mlp_forward(layers: tuple, x: np.ndarray) -> np.ndarray:
+    """`TanhMLP.forward` in numpy, on ((W, b), ...): at batch size 1 numpy's per-call overhead is a third of
+    torch's, and its smaller code path leaves the simulator's own code in the CPU caches."""
+    *inner, (last_weight, last_bias) = layers
+    for weight, bias in inner:
+        x = np.tanh(x @ weight + bias)
+    return x @ last_weight + last_bias
+
+
+def numpy_policy(actor: Actor) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """obs [B, obs_dim] (numpy) -> mean [B, A], log-std [1, A], as `actor.forward`, computed on numpy copies
+    of the current weights (in their dtype): for acting during a rollout (the copies do not follow updates)."""
+    layers = tuple((w.detach().cpu().numpy().copy(), b.detach().cpu().numpy().copy())
+                   for w, b in zip(actor.mean_net.weights, actor.mean_net.biases))
+    log_std = actor.log_std.detach().cpu().numpy().copy()
+    return lambda obs: (numpy_mlp_forward(layers, obs), log_std)
+
+
+def torch_policy(actor: Actor) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The same interface through section 1's forward (the autograd path's acting)."""
+    device = actor.log_std.device
+
+    def act(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with torch.inference_mode():
+            mean, log_std = actor(torch.as_tensor(obs, device=device))
+        return mean.cpu().numpy(), log_std.cpu().numpy()
+
+    return act
+
+
+LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
+# g * (1 - h^2) for h = tanh(z): autograd's own kernel for tanh's derivative, one op instead of two
+tanh_backward = torch.ops.aten.tanh_backward
+
+
+def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
+    return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
+
+
+def ppo_loss_gradients(
+    mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor, old_logprob: torch.Tensor,
+    advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor, args: Args,
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`ppo_loss` and its gradient w.r.t. the nets' outputs, written out by hand.
+
+    mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
+    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss, its terms, the log-ratio and ratio.
+    """
+    batch = len(value)
+    # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
+    inv_std = torch.exp(-log_std)
+    u = (actions - mean) * inv_std
+    u2 = u * u
+    newlogprob = (u2.mul(-0.5) - log_std).sum(1) - LOG_SQRT_2PI * u.shape[1]
+    logratio = newlogprob - old_logprob
+    ratio = logratio.exp()
+    if args.norm_adv:
+        adv_std, adv_mean = torch.std_mean(advantages)
+        advantages = (advantages - adv_mean) / (adv_std + 1e-8)
+
+    # Policy loss mean(max(-A r, -A clip(r, 1-eps, 1+eps))). Its gradient w.r.t. r is -A/B wherever
+    # the unclipped term is the max (inside the clip range both terms are equal: autograd's halves
+    # add up to the same) and 0 elsewhere; dr/dlogprob = r, so dL/dlogprob = (-A r)/B there.
+    pg_loss1 = -advantages * ratio
+    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+    grad_logprob = (pg_loss1 * (pg_loss1 >= pg_loss2)).div_(batch).unsqueeze(1)
+    # dlogprob/dmean = u / std, dlogprob/dlog_std = u^2 - 1
+    grad_mean = grad_logprob * u * inv_std
+    grad_log_std = grad_logprob * u2 - grad_logprob
+
+    # Value loss 0.5 mean(max((v - R)^2, (v_clip - R)^2)) with v_clip = v_old + clip(v - v_old, -eps, eps);
+    # the clipped branch passes a gradient only where v - v_old is inside the clip range.
+    if args.clip_vloss:
+        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
+        v_loss_unclipped, v_loss_clipped = (value - returns) ** 2, (v_clipped - returns) ** 2
+        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
+        inside = (value - old_value).abs() <= args.clip_coef
+        grad_v = torch.where(v_loss_unclipped >= v_loss_clipped, value - returns,
+                             torch.where(inside, v_clipped - returns, 0.0))
+    else:
+        v_loss = 0.5 * ((value - returns) ** 2).mean()
+        grad_v = value - returns
+    grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
+
+    entropy_loss = gaussian_entropy(log_std).mean()
+    loss = pg_loss + args.vf_coef * v_loss
+    if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
+        loss = loss - args.ent_coef * entropy_loss
+        grad_log_std -= args.ent_coef / batch
+    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy_loss,
+              "logratio": logratio, "ratio": ratio}
+    return losses, grad_mean, grad_log_std, grad_value
+
+
+def mlp_backward(mlp: TanhMLP, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
+    """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `mlp(x, hidden)`."""
+    inputs = [x, *hidden]
+    for i in reversed(range(len(mlp.weights))):
+        weight, bias = mlp.weights[i], mlp.biases[i]
+        torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
+        torch.sum(grad_output, 0, out=bias.grad)
+        if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2), with g = dL/dz W^T
+            grad_output = tanh_backward(torch.mm(grad_output, weight.T), inputs[i])
+
+
+def actor_backward(actor: Actor, obs: torch.Tensor, hidden: list[torch.Tensor], grad_mean: torch.Tensor,
+                   grad_log_std: torch.Tensor) -> None:
+    """Write the actor's .grad from dL/dmean and dL/dlog_std [B, A] of `actor(obs, hidden)`."""
+    mlp_backward(actor.mean_net, obs, hidden, grad_mean)
+    torch.sum(grad_log_std, 0, keepdim=True, out=actor.log_std.grad)  # one vector shared by the batch
+
+
+def fast_gradients(actor: Actor, critic: TanhMLP, minibatch: tuple, args: Args,
+                   output_grads: list | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """`autograd_gradients` by hand: the loss of one minibatch, its gradient written into every .grad.
+    `output_grads` receives dL/dmean, dL/dlog_std, dL/dvalue (for the check)."""
+    obs, actions, old_logprob, advantages, returns, old_value = minibatch
+    actor_hidden, critic_hidden = [], []
+    mean, log_std = actor(obs, actor_hidden)
+    value = critic(obs, critic_hidden).squeeze(1)
+    losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
+        mean, log_std, value, actions, old_logprob, advantages, returns, old_value, args)
+    if output_grads is not None:
+        output_grads += [grad_mean, grad_log_std, grad_value.squeeze(1)]
+    actor_backward(actor, obs, actor_hidden, grad_mean, grad_log_std)
+    mlp_backward(critic, obs, critic_hidden, grad_value)
+    return losses.pop("loss"), losses
+
+
+def share_one_buffer(params: list[nn.Parameter]) -> nn.Parameter:
+    """Make every parameter, and its .grad, a view into one flat buffer; return that buffer as a Parameter.
+
+    The optimizer then updates a single tensor and the gradient norm is one reduction, instead of
+    one small op per parameter. Values are unchanged; both gradient paths overwrite the .grad views
+    every minibatch (so there is no zero_grad)."""
+    flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
+    flat.grad = torch.zeros_like(flat)
+    offset = 0
+    for p in params:
+        p.data = flat.data[offset : offset + p.numel()].view_as(p)
+        p.grad = flat.grad[offset : offset + p.numel()].view_as(p)
+        offset += p.numel()
+    return flat
+
+
+def clip_grad_norm(flat: nn.Parameter, max_norm: float) -> None:
+    """torch.nn.utils.clip_grad_norm_ on the one gradient buffer: scale by min(1, max_norm / (norm + 1e-6))."""
+    flat.grad.mul_(torch.clamp(max_norm / (flat.grad.norm() + 1e-6), max=1.0))
+
+
+def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
+    """PPO's Adam (eps 1e-5); the fused kernel updates all parameters at once, ~3x faster on CPU."""
+    return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
+
+
+def adam_step(optimizer: torch.optim.Adam) -> None:
+    """`optimizer.step()` for our one flat parameter: a direct call of the fused kernel that step() ends in.
+
+    step() spends ~30 us per call grouping tensors and checking options (~4x the kernel itself) in a
+    tight loop, and measured ~100 us per minibatch inside the training loop: ~30 ms of an update's 320
+    minibatches. The state stays in the optimizer as usual (checkpoints unchanged);
+    tests/test_gradients.py checks this against step() bit for bit, so a torch that changes the kernel's
+    signature fails there.
+    """
+    group = optimizer.param_groups[0]
+    (param,) = group["params"]
+    state = optimizer.state.get(param)
+    if not state:  # the first step creates the state
+        optimizer.step()
+        return
+    state["step"] += 1  # as step() does before the kernel
+    beta1, beta2 = group["betas"]
+    torch._fused_adam_([param], [param.grad], [state["exp_avg"]], [state["exp_avg_sq"]], [], [state["step"]],
+                       amsgrad=False, lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"],
+                       eps=group["eps"], maximize=False)
+
+
+def fast_optimizer_step(flat: nn.Parameter, optimizer: torch.optim.Adam, max_norm: float) -> None:
+    """nn.utils.clip_grad_norm_ and optimizer.step() on the one parameter buffer, without their overhead."""
+    clip_grad_norm(flat, max_norm)
+    adam_step(optimizer)
+
+
+# Relative disagreement (max |fast - reference| / max |reference|, in float64) above which a fast path
+# counts as not matching section 1. Measured on the unmodified script: at most ~1e-13 (README, "Hacking
+# Cascade"); the smallest edit tried (0.01 * mean.pow(2).mean() added to the loss) gives ~1e-6 to 1e-3.
+FAST_PATH_TOLERANCE = 1e-9
+
+
+def relative_error(fast: list[torch.Tensor], reference: list[torch.Tensor]) -> float:
+    fast_flat = torch.cat([t.reshape(-1) for t in fast])
+    reference_flat = torch.cat([t.reshape(-1) for t in reference])
+    scale = max(reference_flat.abs().max().item() if len(reference_flat) else 0.0, 1e-30)
+    return (fast_flat - reference_flat).abs().max().item() / scale if len(reference_flat) else 0.0
+
+
+def float64_copy(module: nn.Module) -> nn.Module:
+    """A float64 copy with zeroed .grad buffers; copying draws no random numbers (the run's RNG is untouched)."""
+    twin = copy.deepcopy(module).double()
+    for param in twin.parameters():
+        param.grad = torch.zeros_like(param)
+    return twin
+
+
+class FastPaths:
+    """Which fast paths are on, and their checks against section 1 (float64 copies of the nets).
+
+    A check that fails turns its path off for the rest of the run: the run then acts through
+    `torch_policy` / updates through `autograd_gradients`, and says so once, in one line."""
+
+    def __init__(self, enabled: bool, run: RunLog | None = None):
+        self.acting = self.gradients = enabled
+        self.run = run
+        self.worst = {"acting": 0.0, "gradients": 0.0}  # largest disagreement seen by the checks that passed
+        self.check_seconds = 0.0
+        self.messages: list[str] = []
+
+    def acting_policy(self, actor: Actor, check_obs: np.ndarray, step: int) -> Callable:
+        """The rollout's acting function: the numpy forward if it matches `actor.forward` on `check_obs`."""
+        if not self.acting:
+            return torch_policy(actor)
+        start = time.perf_counter()
+        twin = float64_copy(actor)
+        obs = torch.as_tensor(check_obs, dtype=torch.float64)
+        reference = twin(obs.to(twin.log_std.device))
+        reference = [r.cpu() for r in reference]
+        fast = [torch.as_tensor(np.broadcast_to(a, r.shape).copy())
+                for a, r in zip(numpy_policy(twin)(obs.numpy()), reference)]
+        error = relative_error(fast, reference)
+        self.check_seconds += time.perf_counter() - start
+        if error > FAST_PATH_TOLERANCE:
+            self.switch_off("acting", f"the numpy acting forward (numpy_policy) differs from Actor.forward "
+                            f"(max relative error {error:.1e})", step)
+            return torch_policy(actor)
+        self.worst["acting"] = max(self.worst["acting"], error)
+        return numpy_policy(actor)
+
+    def check_gradients(self, actor: Actor, critic: TanhMLP, minibatch: tuple, args: Args, step: int) -> None:
+        """Compare the hand-written gradients with autograd through section 1 on one minibatch."""
+        if not self.gradients:
+            return
+        start = time.perf_counter()
+        actor64, critic64 = float64_copy(actor), float64_copy(critic)
+        params = [*actor64.parameters(), *critic64.parameters()]
+        obs, *rest = (t.detach().double() for t in minibatch)
+        with torch.enable_grad():
+            mean, log_std = actor64(obs)
+            value = critic64(obs).squeeze(1)
+            loss, _ = ppo_loss(mean, log_std, value, *rest, args)
+            grads = torch.autograd.grad(loss, [mean, log_std, value, *params], allow_unused=True)
+        grads = [torch.zeros_like(t) if g is None else g for t, g in zip([mean, log_std, value, *params], grads)]
+        output_grads: list[torch.Tensor] = []
+        with torch.no_grad():
+            fast_loss, _ = fast_gradients(actor64, critic64, (obs, *rest), args, output_grads)
+        num_actor = len(list(actor64.parameters()))
+        comparisons = [
+            ("loss", "ppo_loss_gradients computes another loss than ppo_loss", [fast_loss], [loss.detach()]),
+            ("loss gradient", "ppo_loss_gradients' gradient differs from autograd through ppo_loss",
+             output_grads, grads[:3]),
+            ("actor gradient", "actor_backward differs from autograd through Actor.forward",
+             [p.grad for p in params[:num_actor]], grads[3 : 3 + num_actor]),
+            ("critic gradient", "mlp_backward differs from autograd through TanhMLP.forward",
+             [p.grad for p in params[num_actor:]], grads[3 + num_actor :]),
+        ]
+        self.check_seconds += time.perf_counter() - start
+        if not all(torch.isfinite(g).all() for g in grads) or not math.isfinite(loss.item()):
+            return  # non-finite values are the non-finite guard's business
+        worst = 0.0
+        for _, what, fast, reference in comparisons:
+            error = relative_error(fast, reference)
+            if error > FAST_PATH_TOLERANCE:
+                self.switch_off("gradients", f"{what} (max relative error {error:.1e})", step)
+                return
+            worst = max(worst, error)
+        self.worst["gradients"] = max(self.worst["gradients"], worst)
+
+    def switch_off(self, path: str, what: str, step: int) -> None:
+        setattr(self, path, False)
+        remedy = ("acting through Actor.forward" if path == "acting"
+                  else "updating with autograd through ppo_loss and the nets' forward")
+        message = (f"fast path check at global_step={step}: {what}; continuing by {remedy} (as --autograd). "
+                   f"If section 1 was edited on purpose, this is expected; edit section 2 to match it to get the speed back")
+        self.messages.append(message)
+        if self.run is not None:
+            self.run.fast_path_off(message, step)
+
+
+# ==============================================================================================
+# 3. PLUMBING: environments, evaluation, checkpoints, progress, command line
+# ==============================================================================================
 OBS_CLIP = 10.0
 REWARD_CLIP = 10.0
 NORM_EPS = 1e-8  # the epsilon of gymnasium's NormalizeObservation
@@ -232,231 +765,154 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) 
     return np.clip((obs - mean) / np.sqrt(var + NORM_EPS), -OBS_CLIP, OBS_CLIP).astype(np.float32)
 
 
+
 # ----------------------------------------------------------------------------------------------
-# The agent (CleanRL ppo_continuous_action) and its gradients, written out by hand
+# The run's bookkeeping: TensorBoard, evaluations, checkpoints and resume, progress
 # ----------------------------------------------------------------------------------------------
-# A 64-sample PPO minibatch of these nets is ~1 MFLOP: with autograd, recording and replaying ~80
-# tiny ops cost more than the math (SPEC-exact PPO, measured in benchmarks/throughput.py). So the
-# backward pass below is explicit: a few matmuls per layer, checked against autograd in
-# tests/test_gradients.py. To try another loss, change `ppo_loss_gradients` and run that test.
+class RunLog:
+    """Everything `train` records about a run and restores when it is resumed; no algorithm here."""
 
-# g * (1 - h^2) for h = tanh(z): autograd's own kernel for tanh's derivative, one op instead of two
-tanh_backward = torch.ops.aten.tanh_backward
+    def __init__(self, args: Args, checkpoint: dict | None, obs_dim: int, act_dim: int,
+                 envs: gym.vector.VectorEnv, total_steps: int):
+        from torch.utils.tensorboard import SummaryWriter
 
+        self.args, self.envs, self.obs_dim, self.act_dim = args, envs, obs_dim, act_dim
+        batch_size = args.num_envs * args.num_steps
+        if args.total_timesteps % batch_size and checkpoint is None:
+            updates = args.total_timesteps // batch_size
+            print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
+                  f"the run does {updates} updates = {updates * batch_size} steps")
+        if checkpoint is None:
+            run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+            self.run_dir = os.path.join(args.track_dir, run_name)
+            self.writer = SummaryWriter(self.run_dir)
+            self.writer.add_text(
+                "hyperparameters",
+                "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
+            )
+        else:
+            self.run_dir = os.path.dirname(checkpoint["path"])
+            # purge_step hides whatever the killed run logged after its last checkpoint
+            self.writer = SummaryWriter(self.run_dir, purge_step=checkpoint["global_step"] + 1)
+        self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT_NAME)
+        self.runner = None
+        if args.eval_every:
+            self.runner = EvaluationRunner(args, obs_dim, act_dim,
+                                           calls=0 if checkpoint is None else checkpoint["eval_calls"])
+        self.progress = Progress(total_steps, args.quiet)
+        self.start_time = time.time()
+        self.last_checkpoint_step = 0
 
-def mlp_forward(layers: tuple, x, hidden: list | None = None):
-    """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L for `layers` ((W, b), ...); appends each hidden
-    activation to `hidden` when given. Runs on torch tensors (training) and numpy arrays (acting:
-    at batch size 1 numpy's per-call overhead is a third of torch's, and its smaller code path leaves
-    the simulator's own code in the CPU caches; see benchmarks/throughput.py)."""
-    *inner, (last_weight, last_bias) = layers
-    if isinstance(x, torch.Tensor):
-        for weight, bias in inner:
-            x = torch.tanh(torch.addmm(bias, x, weight))  # addmm: the affine map as one op
-            if hidden is not None:
-                hidden.append(x)
-        return torch.addmm(last_bias, x, last_weight)
-    for weight, bias in inner:
-        x = np.tanh(x @ weight + bias)
-    return x @ last_weight + last_bias
+    def parameters(self, count: int, fresh: bool) -> None:
+        self.progress.message(f"PPO: {count} parameters (actor + critic)")
+        if fresh:
+            self.writer.add_scalar("charts/parameters", count, 0)
 
+    def restore(self, checkpoint: dict, actor: Actor, critic: nn.Module, optimizer: torch.optim.Optimizer) -> tuple:
+        """The saved nets, optimizer, env states and RNG streams; returns (global_step, next_obs, next_done,
+        update) of where the run continues."""
+        global_step = checkpoint["global_step"]
+        self.start_time = time.time() - checkpoint["elapsed"]
+        self.last_checkpoint_step = global_step
+        self.envs.reset(seed=self.args.seed)  # sets up the vector env; then every env gets its saved state back
+        self.envs.call("set_state", checkpoint["env_states"])
+        actor.load_state_dict(checkpoint["actor"])
+        critic.load_state_dict(checkpoint["critic"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        set_rng_states(checkpoint["rng"])
+        self.progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
+        return (global_step, np.asarray(checkpoint["next_obs"], dtype=np.float32), checkpoint["next_done"],
+                checkpoint["updates_done"] + 1)
 
-class TanhMLP(nn.Module):
-    """x -> tanh(x W_1 + b_1) -> ... -> x W_L + b_L, weights stored [in, out], orthogonal init (CleanRL)."""
+    def episodes(self, infos: dict, global_step: int) -> None:
+        """Raw returns and lengths of the training episodes that ended at this step."""
+        if "final_info" in infos and "episode" in infos["final_info"]:
+            finished = infos["final_info"]["_episode"]
+            for ret, length in zip(infos["final_info"]["episode"]["r"][finished],
+                                   infos["final_info"]["episode"]["l"][finished]):
+                self.writer.add_scalar("charts/episodic_return", ret, global_step)
+                self.writer.add_scalar("charts/episodic_length", length, global_step)
 
-    def __init__(self, sizes: list[int], gains: list[float]):
-        super().__init__()
-        self.weights, self.biases = nn.ParameterList(), nn.ParameterList()
-        for d_in, d_out, gain in zip(sizes[:-1], sizes[1:], gains):
-            weight = torch.empty(d_out, d_in)
-            nn.init.orthogonal_(weight, gain)
-            self.weights.append(nn.Parameter(weight.T.contiguous()))
-            self.biases.append(nn.Parameter(torch.zeros(d_out)))
-        self._cache_layers()
+    def update_done(self, global_step: int, optimizer: torch.optim.Optimizer, parts: dict,
+                    old_approx_kl: torch.Tensor, approx_kl: torch.Tensor, ratios: torch.Tensor,
+                    b_values: torch.Tensor, b_returns: torch.Tensor, fast: FastPaths) -> None:
+        """CleanRL's scalars after one update."""
+        write = self.writer.add_scalar
+        y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
+        var_y = np.var(y_true)
+        explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
+        write("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
+        write("losses/value_loss", parts["value_loss"].item(), global_step)
+        write("losses/policy_loss", parts["policy_loss"].item(), global_step)
+        write("losses/entropy", parts["entropy"].item(), global_step)
+        write("losses/old_approx_kl", old_approx_kl.item(), global_step)
+        write("losses/approx_kl", approx_kl.item(), global_step)
+        write("losses/clipfrac", ((ratios - 1.0).abs() > self.args.clip_coef).float().mean().item(), global_step)
+        write("losses/explained_variance", explained_var, global_step)
+        sps = global_step / (time.time() - self.start_time)
+        write("charts/SPS", int(sps), global_step)
+        write("charts/fast_acting", float(fast.acting), global_step)
+        write("charts/fast_gradients", float(fast.gradients), global_step)
+        write("charts/fast_path_check_seconds", fast.check_seconds, global_step)
+        self.progress.update(global_step, sps)
 
-    def _cache_layers(self) -> None:
-        # plain references for the hot path (ParameterList access costs ~1 us per lookup)
-        self._layers = tuple(zip(self.weights, self.biases))
+    def fast_path_off(self, message: str, step: int) -> None:
+        """A fast path failed its check: one line on stderr (also with --quiet), a TensorBoard text."""
+        print(f"\r\033[Kwarning: {message}" if self.progress.tty else f"warning: {message}", file=sys.stderr,
+              flush=True)
+        self.writer.add_text("fast_paths", message, step)
+        self.progress.note = " | autograd (fast path check failed)"
 
-    def _apply(self, fn, recurse=True):  # .to(device) and friends may swap the Parameters
-        module = super()._apply(fn, recurse)
-        self._cache_layers()
-        return module
+    def stop_non_finite(self, global_step: int, update: int) -> None:
+        self.writer.close()
+        fail(f"non-finite loss or parameters at global_step={global_step} (update {update}); "
+             f"the last good checkpoint {self.checkpoint_path} is intact")
 
-    def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
-        """Output [B, out]; appends each hidden activation to `hidden` when given (for `backward`)."""
-        return mlp_forward(self._layers, x, hidden)
+    # --- evaluation (SPEC §6) ---
+    def evaluate(self, step: int, actor: Actor) -> None:
+        """Freeze the current policy and observation statistics and evaluate them."""
+        if self.runner is None:
+            return
+        self.runner.submit(step, actor, obs_statistics(self.envs))
+        self.log_evaluations()
 
-    def backward(self, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
-        """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `forward(x, hidden)`."""
-        inputs = [x, *hidden]
-        for i in reversed(range(len(self._layers))):
-            weight, bias = self._layers[i]
-            torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
-            torch.sum(grad_output, 0, out=bias.grad)
-            if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2), with g = dL/dz W^T
-                grad_output = tanh_backward(torch.mm(grad_output, weight.T), inputs[i])
+    def log_evaluations(self, wait: bool = False) -> None:
+        if self.runner is None:
+            return
+        for step, returns in self.runner.results(wait):
+            self.writer.add_scalar("eval/episodic_return", returns.mean(), step)
+            self.writer.add_scalar("eval/episodic_return_std", returns.std(), step)
+            self.progress.last_eval = float(returns.mean())
+            self.progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} "
+                                  f"± {returns.std():.1f}")
 
+    # --- checkpoints ---
+    def maybe_checkpoint(self, update: int, total_updates: int, global_step: int, actor: Actor, critic: nn.Module,
+                         optimizer: torch.optim.Optimizer, next_obs: np.ndarray, next_done: np.ndarray) -> None:
+        """At the end of the run and every --checkpoint-every steps."""
+        args = self.args
+        now = update == total_updates or (
+            args.checkpoint_every and global_step - self.last_checkpoint_step >= args.checkpoint_every)
+        self.log_evaluations(wait=bool(now))  # finished evaluations; before a checkpoint, all of them
+        if not now:
+            return
+        save_checkpoint(self.checkpoint_path, {
+            "format": "ppo_baseline/2", "args": asdict(args), "obs_dim": self.obs_dim, "act_dim": self.act_dim,
+            "updates_done": update, "global_step": global_step, "elapsed": time.time() - self.start_time,
+            "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
+            "obs_stats": obs_statistics(self.envs), "env_states": self.envs.call("get_state"),
+            "next_obs": next_obs.copy(), "next_done": next_done.copy(), "rng": rng_states(),
+            "eval_calls": 0 if self.runner is None else self.runner.calls,
+        })
+        self.last_checkpoint_step = global_step
 
-class Actor(nn.Module):
-    """Gaussian policy: mean MLP obs -> H -> H -> A (tanh) and one state-independent log-std vector."""
-
-    def __init__(self, obs_dim: int, act_dim: int, hidden_size: int):
-        super().__init__()
-        self.mean_net = TanhMLP([obs_dim, hidden_size, hidden_size, act_dim], [math.sqrt(2), math.sqrt(2), 0.01])
-        self.log_std = nn.Parameter(torch.zeros(1, act_dim))
-
-    def forward(self, obs: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        mean = self.mean_net(obs, hidden)
-        return mean, self.log_std.expand_as(mean)
-
-    def numpy_policy(self) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """obs [B, obs_dim] (float32 numpy) -> mean [B, A], log-std [1, A], computed on numpy copies of the
-        current weights: for acting during a rollout (the copies do not follow later updates)."""
-        layers = tuple((w.detach().cpu().numpy().copy(), b.detach().cpu().numpy().copy())
-                       for w, b in self.mean_net._layers)
-        log_std = self.log_std.detach().cpu().numpy().copy()
-        return lambda obs: (mlp_forward(layers, obs), log_std)
-
-    def backward(self, obs: torch.Tensor, hidden: list[torch.Tensor], grad_mean: torch.Tensor,
-                 grad_log_std: torch.Tensor) -> None:
-        """Write the parameters' .grad from dL/dmean and dL/dlog_std [B, A] of `forward(obs, hidden)`."""
-        self.mean_net.backward(obs, hidden, grad_mean)
-        torch.sum(grad_log_std, 0, keepdim=True, out=self.log_std.grad)  # one vector shared by the batch
-
-
-def make_critic(obs_dim: int) -> TanhMLP:
-    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh)."""
-    return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
-
-
-def count_parameters(*modules: nn.Module) -> int:
-    return sum(p.numel() for m in modules for p in m.parameters())
-
-
-def share_one_buffer(params: list[nn.Parameter]) -> nn.Parameter:
-    """Make every parameter, and its .grad, a view into one flat buffer; return that buffer as a Parameter.
-
-    The optimizer then updates a single tensor and the gradient norm is one reduction, instead of
-    one small op per parameter. Values are unchanged; the hand-written backward overwrites the .grad
-    views every minibatch (so there is no zero_grad)."""
-    flat = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in params]))
-    flat.grad = torch.zeros_like(flat)
-    offset = 0
-    for p in params:
-        p.data = flat.data[offset : offset + p.numel()].view_as(p)
-        p.grad = flat.grad[offset : offset + p.numel()].view_as(p)
-        offset += p.numel()
-    return flat
-
-
-def clip_grad_norm(flat: nn.Parameter, max_norm: float) -> None:
-    """torch.nn.utils.clip_grad_norm_ on the one gradient buffer: scale by min(1, max_norm / (norm + 1e-6))."""
-    flat.grad.mul_(torch.clamp(max_norm / (flat.grad.norm() + 1e-6), max=1.0))
-
-
-LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
-
-
-def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
-    return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
-
-
-def ppo_loss_gradients(
-    mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor, old_logprob: torch.Tensor,
-    advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor, args: Args,
-) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
-    """CleanRL's PPO loss on one minibatch, and its gradient w.r.t. the nets' outputs.
-
-    mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
-    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss terms, log-ratio and ratio.
-    """
-    batch = len(value)
-    # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
-    inv_std = torch.exp(-log_std)
-    u = (actions - mean) * inv_std
-    u2 = u * u
-    newlogprob = (u2.mul(-0.5) - log_std).sum(1) - LOG_SQRT_2PI * u.shape[1]
-    logratio = newlogprob - old_logprob
-    ratio = logratio.exp()
-    if args.norm_adv:
-        adv_std, adv_mean = torch.std_mean(advantages)
-        advantages = (advantages - adv_mean) / (adv_std + 1e-8)
-
-    # Policy loss mean(max(-A r, -A clip(r, 1-eps, 1+eps))). Its gradient w.r.t. r is -A/B wherever
-    # the unclipped term is the max (inside the clip range both terms are equal: autograd's halves
-    # add up to the same) and 0 elsewhere; dr/dlogprob = r, so dL/dlogprob = (-A r)/B there.
-    pg_loss1 = -advantages * ratio
-    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
-    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
-    grad_logprob = (pg_loss1 * (pg_loss1 >= pg_loss2)).div_(batch).unsqueeze(1)
-    # dlogprob/dmean = u / std, dlogprob/dlog_std = u^2 - 1
-    grad_mean = grad_logprob * u * inv_std
-    grad_log_std = grad_logprob * u2 - grad_logprob
-
-    # Value loss 0.5 mean(max((v - R)^2, (v_clip - R)^2)) with v_clip = v_old + clip(v - v_old, -eps, eps);
-    # the clipped branch passes a gradient only where v - v_old is inside the clip range.
-    if args.clip_vloss:
-        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
-        v_loss_unclipped, v_loss_clipped = (value - returns) ** 2, (v_clipped - returns) ** 2
-        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
-        inside = (value - old_value).abs() <= args.clip_coef
-        grad_v = torch.where(v_loss_unclipped >= v_loss_clipped, value - returns,
-                             torch.where(inside, v_clipped - returns, 0.0))
-    else:
-        v_loss = 0.5 * ((value - returns) ** 2).mean()
-        grad_v = value - returns
-    grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
-
-    loss = pg_loss + args.vf_coef * v_loss
-    if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
-        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
-        grad_log_std -= args.ent_coef / batch
-    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "logratio": logratio, "ratio": ratio}
-    return losses, grad_mean, grad_log_std, grad_value
-
-
-def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
-    """PPO's Adam (eps 1e-5); the fused kernel updates all parameters at once, ~3x faster on CPU."""
-    return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
-
-
-def adam_step(optimizer: torch.optim.Adam) -> None:
-    """`optimizer.step()` for our one flat parameter: a direct call of the fused kernel that step() ends in.
-
-    step() spends ~30 us per call grouping tensors and checking options (~4x the kernel itself) in a
-    tight loop, and measured ~100 us per minibatch inside the training loop: ~30 ms of an update's 320
-    minibatches. The state stays in the optimizer as usual (checkpoints unchanged);
-    tests/test_gradients.py checks this against step() bit for bit, so a torch that changes the kernel's
-    signature fails there.
-    """
-    group = optimizer.param_groups[0]
-    (param,) = group["params"]
-    state = optimizer.state.get(param)
-    if not state:  # the first step creates the state
-        optimizer.step()
-        return
-    state["step"] += 1  # as step() does before the kernel
-    beta1, beta2 = group["betas"]
-    torch._fused_adam_([param], [param.grad], [state["exp_avg"]], [state["exp_avg_sq"]], [], [state["step"]],
-                       amsgrad=False, lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"],
-                       eps=group["eps"], maximize=False)
-
-
-def compute_gae(rewards: np.ndarray, dones: np.ndarray, values: np.ndarray, next_value: np.ndarray,
-                next_done: np.ndarray, gamma: float, gae_lambda: float) -> np.ndarray:
-    """Generalized advantage estimates [T, E]. dones[t] marks that obs[t] began a new episode, so the
-    step before it does not bootstrap (CleanRL: termination and truncation alike). Plain numpy: the
-    backward recursion is 2048 tiny steps, far cheaper than as tensor ops."""
-    advantages = np.zeros_like(rewards)
-    last = np.zeros_like(next_value)
-    for t in reversed(range(len(rewards))):
-        not_done = 1.0 - (next_done if t == len(rewards) - 1 else dones[t + 1])
-        next_v = next_value if t == len(rewards) - 1 else values[t + 1]
-        delta = rewards[t] + gamma * next_v * not_done - values[t]
-        last = delta + gamma * gae_lambda * not_done * last
-        advantages[t] = last
-    return advantages
+    def close(self, global_step: int, actor: Actor) -> None:
+        if self.runner is not None:
+            if global_step % self.args.eval_every >= self.args.num_envs:
+                self.evaluate(global_step, actor)  # the final policy, if the last step was not an eval step
+            self.log_evaluations(wait=True)
+            self.runner.close()
+        self.writer.close()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -610,7 +1066,6 @@ def record_video(actor: Actor, stats, env_id: str, path: str, deterministic: boo
     env.close()
     return total
 
-
 # ----------------------------------------------------------------------------------------------
 # Checkpoints: one file with everything needed to continue and to act
 # ----------------------------------------------------------------------------------------------
@@ -661,6 +1116,7 @@ class Progress:
         self.tty = sys.stdout.isatty()
         self.last_print = 0.0
         self.last_eval: float | None = None
+        self.note = ""  # e.g. that a fast path was switched off
 
     def update(self, step: int, sps: float, force: bool = False) -> None:
         now = time.time()
@@ -670,7 +1126,7 @@ class Progress:
         eta = (self.total - step) / max(sps, 1e-9)
         ev = "-" if self.last_eval is None else f"{self.last_eval:.1f}"
         line = (f"{step:>10,}/{self.total:,} steps ({100 * step / self.total:5.1f}%) | {sps:6.0f} SPS | "
-                f"eval {ev} | ETA {time.strftime('%H:%M:%S', time.gmtime(eta))}")
+                f"eval {ev} | ETA {time.strftime('%H:%M:%S', time.gmtime(eta))}{self.note}")
         print(f"\r{line}" if self.tty else line, end="" if self.tty else "\n", flush=True)
 
     def message(self, text: str) -> None:
@@ -679,9 +1135,8 @@ class Progress:
             return
         print(f"\r\033[K{text}" if self.tty else text, flush=True)
 
-
 # ----------------------------------------------------------------------------------------------
-# Training
+# Input checks, seeding
 # ----------------------------------------------------------------------------------------------
 def validate(args: Args) -> None:
     """Reject bad input with one clear line before anything is created."""
@@ -729,225 +1184,6 @@ def set_rng_states(states: dict) -> None:
     random.setstate(states["python"])
 
 
-@torch.no_grad()  # gradients are written out by hand (ppo_loss_gradients, TanhMLP.backward): no autograd
-def train(args: Args, checkpoint: dict | None = None) -> dict:
-    """Runs PPO (from scratch, or continuing `checkpoint`); returns the final actor, critic and run folder."""
-    validate(args)
-    torch.set_num_threads(args.torch_threads)
-    seed_everything(args.seed, args.torch_deterministic)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-
-    envs = make_vector_env(args)
-    obs_dim = int(np.prod(envs.single_observation_space.shape))
-    act_dim = int(np.prod(envs.single_action_space.shape))
-
-    batch_size = args.num_envs * args.num_steps
-    minibatch_size = batch_size // args.num_minibatches
-    total_updates = args.total_timesteps // batch_size
-    updates_per_cycle = max(args.cycle_steps // batch_size, 1)
-    if args.total_timesteps % batch_size and checkpoint is None:
-        print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
-              f"the run does {total_updates} updates = {total_updates * batch_size} steps")
-
-    from torch.utils.tensorboard import SummaryWriter
-
-    if checkpoint is None:
-        run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
-        run_dir = os.path.join(args.track_dir, run_name)
-        writer = SummaryWriter(run_dir)
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
-        )
-    else:
-        run_dir = os.path.dirname(checkpoint["path"])
-        # purge_step hides whatever the killed run logged after its last checkpoint
-        writer = SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1)
-    checkpoint_path = os.path.join(run_dir, CHECKPOINT_NAME)
-
-    actor = Actor(obs_dim, act_dim, args.hidden_size).to(device)
-    critic = make_critic(obs_dim).to(device)
-    params = share_one_buffer([*actor.parameters(), *critic.parameters()])
-    optimizer = make_optimizer([params], args.learning_rate)
-    n_params = count_parameters(actor, critic)
-    runner = None
-    if args.eval_every:
-        runner = EvaluationRunner(args, obs_dim, act_dim, calls=0 if checkpoint is None else checkpoint["eval_calls"])
-    progress = Progress(total_updates * batch_size, args.quiet)
-    progress.message(f"PPO: {n_params} parameters (actor + critic)")
-
-    def log_evaluations(wait: bool = False) -> None:
-        for step, returns in runner.results(wait):
-            writer.add_scalar("eval/episodic_return", returns.mean(), step)
-            writer.add_scalar("eval/episodic_return_std", returns.std(), step)
-            progress.last_eval = float(returns.mean())
-            progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
-
-    def evaluate(step: int) -> None:
-        """Freeze the current policy and observation statistics and evaluate them (SPEC §6)."""
-        runner.submit(step, actor, obs_statistics(envs))
-        log_evaluations()
-
-    # Rollout storage, preallocated once, numpy: acting runs in numpy and the env takes and gives numpy
-    obs = np.zeros((args.num_steps, args.num_envs, obs_dim), dtype=np.float32)
-    actions = np.zeros((args.num_steps, args.num_envs, act_dim), dtype=np.float32)
-    rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
-    dones = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
-
-    def make_checkpoint(updates_done: int) -> dict:
-        return {
-            "format": "ppo_baseline/2", "args": asdict(args), "obs_dim": obs_dim, "act_dim": act_dim,
-            "updates_done": updates_done, "global_step": global_step, "elapsed": time.time() - start_time,
-            "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
-            "obs_stats": obs_statistics(envs), "env_states": envs.call("get_state"),
-            "next_obs": next_obs.copy(), "next_done": next_done.copy(), "rng": rng_states(),
-            "eval_calls": 0 if runner is None else runner.calls,
-        }
-
-    if checkpoint is None:
-        global_step, start_update = 0, 1
-        start_time = time.time()
-        next_obs = envs.reset(seed=args.seed)[0].astype(np.float32)
-        next_done = np.zeros(args.num_envs, dtype=np.float32)
-        if runner is not None:
-            evaluate(0)
-        writer.add_scalar("charts/parameters", n_params, global_step)
-    else:
-        global_step, start_update = checkpoint["global_step"], checkpoint["updates_done"] + 1
-        start_time = time.time() - checkpoint["elapsed"]
-        envs.reset(seed=args.seed)  # sets up the vector env; then every env gets its saved state back
-        envs.call("set_state", checkpoint["env_states"])
-        next_obs = np.asarray(checkpoint["next_obs"], dtype=np.float32)
-        next_done = checkpoint["next_done"]
-        actor.load_state_dict(checkpoint["actor"])
-        critic.load_state_dict(checkpoint["critic"])
-        optimizer.load_state_dict(checkpoint["optimizer"])
-        set_rng_states(checkpoint["rng"])
-        progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
-    last_checkpoint_step = global_step
-
-    for update in range(start_update, total_updates + 1):
-        if args.lr_schedule == "global":
-            frac = 1.0 - (update - 1.0) / total_updates
-        elif args.lr_schedule == "cyclic":
-            frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle
-        else:
-            frac = 1.0
-        optimizer.param_groups[0]["lr"] = frac * args.learning_rate
-
-        # --- rollout: only the actor runs per step. The nets do not change during a rollout, so
-        # values and log-probs are computed for the whole batch afterwards. ---
-        policy = actor.numpy_policy()  # the weights do not change during a rollout
-        noise = torch.randn((args.num_steps, args.num_envs, act_dim))  # torch's RNG stream, used from numpy
-        noise_np = noise.numpy()
-        for step in range(args.num_steps):
-            global_step += args.num_envs
-            obs[step] = next_obs
-            dones[step] = next_done
-            mean, log_std = policy(next_obs)
-            action = mean + np.exp(log_std) * noise_np[step]
-            actions[step] = action
-
-            next_obs, reward, terminations, truncations, infos = envs.step(action)
-            rewards[step] = reward
-            next_obs = next_obs.astype(np.float32)
-            next_done = np.logical_or(terminations, truncations).astype(np.float32)
-            if "final_info" in infos and "episode" in infos["final_info"]:
-                finished = infos["final_info"]["_episode"]
-                for ret, length in zip(infos["final_info"]["episode"]["r"][finished],
-                                       infos["final_info"]["episode"]["l"][finished]):
-                    writer.add_scalar("charts/episodic_return", ret, global_step)
-                    writer.add_scalar("charts/episodic_length", length, global_step)
-            if runner is not None and global_step % args.eval_every < args.num_envs:
-                evaluate(global_step)
-
-        b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
-        # log N(mean + std*noise; mean, std) only depends on the noise and the log-std
-        b_logprobs = (-0.5 * noise.to(device).pow(2) - actor.log_std - LOG_SQRT_2PI).sum(-1).reshape(-1)
-        values = critic(b_obs).reshape(args.num_steps, args.num_envs)
-        next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)
-        advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
-                                 args.gamma, args.gae_lambda)
-        b_advantages = torch.as_tensor(advantages, device=device).reshape(-1)
-        b_values = values.reshape(-1)
-        b_returns = b_advantages + b_values
-        b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
-
-        # --- PPO update ---
-        # one [B, D] tensor holding all a minibatch needs, so each minibatch is a single gather
-        batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
-                           b_values[:, None]], dim=1)
-        ratios = []  # of every minibatch, for the clip fraction
-        # inference mode skips even the autograd bookkeeping that no_grad still does (~15% per op here)
-        with torch.inference_mode():
-            for _epoch in range(args.update_epochs):
-                b_inds = torch.randperm(batch_size, device=device)
-                for start in range(0, batch_size, minibatch_size):
-                    minibatch = torch.index_select(batch, 0, b_inds[start : start + minibatch_size])
-                    mb_obs, mb_actions = minibatch[:, :obs_dim], minibatch[:, obs_dim : obs_dim + act_dim]
-                    mb_logprobs, mb_advantages, mb_returns, mb_values = minibatch[:, obs_dim + act_dim :].unbind(1)
-                    actor_hidden, critic_hidden = [], []
-                    mean, log_std = actor(mb_obs, actor_hidden)
-                    newvalue = critic(mb_obs, critic_hidden).squeeze(1)
-                    losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
-                        mean, log_std, newvalue, mb_actions, mb_logprobs, mb_advantages, mb_returns, mb_values, args)
-                    ratios.append(losses["ratio"])
-
-                    actor.backward(mb_obs, actor_hidden, grad_mean, grad_log_std)
-                    critic.backward(mb_obs, critic_hidden, grad_value)
-                    clip_grad_norm(params, args.max_grad_norm)
-                    adam_step(optimizer)
-
-                # CleanRL's diagnostics, from the epoch's last minibatch
-                logratio, ratio = losses["logratio"], losses["ratio"]
-                old_approx_kl = (-logratio).mean()
-                approx_kl = ((ratio - 1) - logratio).mean()
-                entropy_loss = gaussian_entropy(log_std).mean()
-
-                if args.target_kl is not None and approx_kl > args.target_kl:
-                    break
-
-        y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
-        var_y = np.var(y_true)
-        explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
-
-        # --- logging (CleanRL names) ---
-        writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
-        writer.add_scalar("losses/value_loss", losses["value_loss"].item(), global_step)
-        writer.add_scalar("losses/policy_loss", losses["policy_loss"].item(), global_step)
-        writer.add_scalar("losses/entropy", entropy_loss.item(), global_step)
-        writer.add_scalar("losses/old_approx_kl", old_approx_kl.item(), global_step)
-        writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
-        clipfrac = ((torch.cat(ratios) - 1.0).abs() > args.clip_coef).float().mean()
-        writer.add_scalar("losses/clipfrac", clipfrac.item(), global_step)
-        writer.add_scalar("losses/explained_variance", explained_var, global_step)
-        sps = global_step / (time.time() - start_time)
-        writer.add_scalar("charts/SPS", int(sps), global_step)
-        progress.update(global_step, sps)
-
-        # --- non-finite guard: stop before anything bad is written to the checkpoint ---
-        if not math.isfinite(losses["loss"].item()) or not torch.isfinite(params).all():
-            writer.close()
-            fail(f"non-finite loss or parameters at global_step={global_step} (update {update}); "
-                 f"the last good checkpoint {checkpoint_path} is intact")
-        checkpoint_now = update == total_updates or (
-            args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every)
-        if runner is not None:  # finished evaluations; before a checkpoint, all of them
-            log_evaluations(wait=checkpoint_now)
-        if checkpoint_now:
-            save_checkpoint(checkpoint_path, make_checkpoint(update))
-            last_checkpoint_step = global_step
-
-    if runner is not None:
-        if global_step % args.eval_every >= args.num_envs:
-            evaluate(global_step)  # the final policy, if the last step was not an eval step
-        log_evaluations(wait=True)
-        runner.close()
-    final_stats = obs_statistics(envs)
-    envs.close()
-    writer.close()
-    return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step,
-            "obs_stats": final_stats}
 
 
 # ----------------------------------------------------------------------------------------------

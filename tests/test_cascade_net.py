@@ -256,7 +256,7 @@ def test_baseline_numpy_policy_matches_the_torch_forward():
             p.normal_(0.0, 0.5)
         obs = torch.randn(4, 5)
         mean, log_std = actor(obs)
-    np_mean, np_log_std = actor.numpy_policy()(obs.numpy())
+    np_mean, np_log_std = ppo_baseline.numpy_policy(actor)(obs.numpy())
     np.testing.assert_allclose(np_mean, mean.numpy(), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(np.broadcast_to(np_log_std, np_mean.shape), log_std.detach().numpy())
 

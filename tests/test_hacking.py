@@ -1,0 +1,129 @@
+"""Copy-and-hack safety of the two PPO scripts: an edit of section 1 (the math) takes effect, through the
+fast paths or through autograd after a one-line warning, never silently wrong; the unmodified scripts
+keep their fast paths; --autograd gives the fast path's results up to float rounding."""
+
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+import torch
+
+import cascade_ppo_continuous as cpc
+import ppo_baseline as pb
+from helpers import ROOT
+
+TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2, eval_every=0, checkpoint_every=0, quiet=True)
+TINY_FLAGS = ["--env-id", "Hopper-v4", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2",
+              "--eval-every", "0", "--checkpoint-every", "0", "--quiet"]
+BUDGET = {"cascade_ppo_continuous.py": ["--n", "2", "--k", "1024"], "ppo_baseline.py": ["--total-timesteps", "1024"]}
+
+
+def final_parameters(run_dir):
+    checkpoint = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)
+    return {f"{part}.{k}": v for part in ("actor", "critic") for k, v in checkpoint[part].items()}
+
+
+def assert_close_parameters(a, b, tol):
+    assert a.keys() == b.keys()
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=tol, atol=tol, msg=key)
+
+
+@pytest.mark.parametrize("module,budget", [(cpc, dict(n=3, k=4096)), (cpc, dict(n=3, k=4096, fallback_init=0.999)),
+                                           (cpc, dict(n=2, k=4096, freeze_previous=True)),
+                                           (pb, dict(total_timesteps=8192))])
+def test_unmodified_script_keeps_its_fast_paths(module, budget, tmp_path):
+    """The float64 checks pass on every rollout and update of a real run, by many orders of magnitude,
+    also with saturated fallbacks (--fallback-init 0.999) and frozen nets."""
+    result = module.train(module.Args(env_id="Hopper-v4", eval_every=0, track_dir=str(tmp_path), quiet=True,
+                                      **budget))
+    fast = result["fast_paths"]
+    assert fast.acting and fast.gradients and fast.messages == []
+    assert 0 < fast.worst["gradients"] < module.FAST_PATH_TOLERANCE * 1e-3, fast.worst
+    assert fast.worst["acting"] < module.FAST_PATH_TOLERANCE * 1e-3, fast.worst
+
+
+@pytest.mark.parametrize("module,budget", [(cpc, dict(n=2, k=1024)), (cpc, dict(n=2, k=1024, freeze_previous=True)),
+                                           (pb, dict(total_timesteps=2048))])
+def test_autograd_path_gives_the_fast_paths_results(module, budget, tmp_path):
+    results = {}
+    for autograd in (False, True):
+        args = module.Args(env_id="Hopper-v4", autograd=autograd, track_dir=str(tmp_path / str(autograd)),
+                           **TINY, **budget)
+        results[autograd] = module.train(args)
+    assert not results[True]["fast_paths"].acting and not results[True]["fast_paths"].gradients
+    for net in ("actor", "critic"):
+        fast, slow = results[False][net].state_dict(), results[True][net].state_dict()
+        for key in fast:
+            torch.testing.assert_close(slow[key], fast[key], rtol=1e-4, atol=1e-5, msg=key)
+
+
+# The edits of issue 17, made the CleanRL way: one line of section 1 changed in a copy of the script.
+EDITS = {
+    "loss term": ("loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef",
+                  "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef + 0.01 * mean.pow(2).mean()"),
+    "relu base nets": ("hidden = torch.tanh(stacked_affine(", "hidden = torch.relu(stacked_affine("),
+    "relu mlp": ("x = torch.tanh(torch.addmm(bias, x, weight))", "x = torch.relu(torch.addmm(bias, x, weight))"),
+    "softmax gating": ("return torch.exp(log_weight - own_logit)", "return torch.softmax(own_logit, 0)"),
+}
+CASES = [  # script, edit, the parts the warnings must name
+    ("cascade_ppo_continuous.py", "loss term", ["ppo_loss_gradients computes another loss than ppo_loss"]),
+    ("cascade_ppo_continuous.py", "relu base nets", ["numpy acting forward", "cascade_backward differs"]),
+    ("cascade_ppo_continuous.py", "softmax gating", ["numpy acting forward", "cascade_backward differs"]),
+    ("ppo_baseline.py", "loss term", ["ppo_loss_gradients computes another loss than ppo_loss"]),
+    ("ppo_baseline.py", "relu mlp", ["numpy acting forward", "actor_backward differs"]),
+]
+
+
+def run_copy(script_path, *flags, track_dir):
+    proc = subprocess.run([sys.executable, script_path, *flags, "--track-dir", str(track_dir)],
+                          capture_output=True, text=True, timeout=300, cwd=os.path.dirname(script_path))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (run_dir,) = os.listdir(track_dir)
+    return proc, os.path.join(track_dir, run_dir)
+
+
+@pytest.fixture(scope="module")
+def unedited(tmp_path_factory):
+    """Final parameters of each unedited script on the tiny budget."""
+    out = {}
+    for script, budget in BUDGET.items():
+        track = tmp_path_factory.mktemp(script.replace(".", "_"))
+        proc, run_dir = run_copy(os.path.join(ROOT, script), *TINY_FLAGS, *budget, track_dir=track / "runs")
+        assert "warning" not in proc.stderr, proc.stderr
+        out[script] = final_parameters(run_dir)
+    return out
+
+
+@pytest.mark.parametrize("script,edit,expected", CASES, ids=[f"{s[:-3]}-{e}" for s, e, _ in CASES])
+def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, unedited, tmp_path):
+    old, new = EDITS[edit]
+    source = open(os.path.join(ROOT, script)).read()
+    assert source.count(old) == 1, f"the edit's line is not in {script} exactly once"
+    copy = tmp_path / script
+    copy.write_text(source.replace(old, new))
+    flags = [*TINY_FLAGS, *BUDGET[script]]
+    switched, switched_dir = run_copy(str(copy), *flags, track_dir=tmp_path / "fast")
+    warnings = [line for line in switched.stderr.splitlines() if line.startswith("warning: fast path check")]
+    assert len(warnings) == len(expected), switched.stderr
+    for line, part in zip(warnings, expected):
+        assert part in line and "continuing by" in line, line
+    _, autograd_dir = run_copy(str(copy), *flags, "--autograd", track_dir=tmp_path / "autograd")
+    switched_params, edited = final_parameters(switched_dir), final_parameters(autograd_dir)
+    # the edit takes effect exactly as autograd computes it (up to float rounding)...
+    assert_close_parameters(switched_params, edited, 1e-4)
+    # ...and it does change the result: by far more than that rounding (the loss term's effect is small
+    # at first, since the means start at ~0.01)
+    rounding = max((switched_params[k] - edited[k]).abs().max().item() for k in edited)
+    effect = max((edited[k] - unedited[script][k]).abs().max().item() for k in edited)
+    assert effect > max(10 * rounding, 1e-6), (effect, rounding)
+
+
+def test_copy_of_a_script_runs_alone(tmp_path):
+    """A copy elsewhere needs nothing else from the repository (single-file scripts)."""
+    shutil.copy(os.path.join(ROOT, "ppo_baseline.py"), tmp_path / "mine.py")
+    proc = subprocess.run([sys.executable, str(tmp_path / "mine.py"), "--help"], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=120)
+    assert proc.returncode == 0 and "--autograd" in proc.stdout
