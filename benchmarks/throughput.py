@@ -6,6 +6,10 @@ update, so start-up (imports, env creation, the first-call costs) is excluded.
 
     python benchmarks/throughput.py                      # Ant-v4
     python benchmarks/throughput.py --env-id HalfCheetah-v4 --json
+    python benchmarks/throughput.py --ref e22f4b3 --configs env_random ppo cascade6 ppo_autograd cascade6_autograd
+
+`--ref REV` also runs PPO and Cascade from an older commit (exported to a temp folder), interleaved
+with the current ones, so a code change is judged by ratios measured side by side.
 """
 
 from __future__ import annotations
@@ -38,10 +42,17 @@ class Args:
     """runs per configuration; the table shows the median"""
     num_envs_parallel: int = 2
     """also measure Cascade with this many envs stepped in parallel processes (0 to skip)"""
+    configs: tuple[str, ...] = ("env_random", "ppo", "cascade6", "cascade6_eval", "cascade6_parallel", "ppo_autograd",
+                                "cascade6_autograd")
+    """configurations to measure (env_random and ppo are always included: the ratios need them)"""
+    ref: str | None = None
+    """also measure ppo and cascade6 at this git revision, side by side (e.g. the commit before a change)"""
     json: bool = False
     """print the results as JSON instead of a table"""
     worker: str | None = None
     """internal: run one configuration and print its JSON result"""
+    root: str = ROOT
+    """internal: the folder the worker imports the scripts from"""
 
 
 CONFIGS = {
@@ -50,6 +61,8 @@ CONFIGS = {
     "cascade6": "(c) Cascade, 6-net stack",
     "cascade6_eval": "(d) Cascade, 6-net stack, eval every 10k (10 episodes)",
     "cascade6_parallel": "(e) Cascade, 6-net stack, envs in parallel processes",
+    "ppo_autograd": "(f) ppo_baseline.py --autograd (no fast paths)",
+    "cascade6_autograd": "(g) Cascade, 6-net stack, --autograd (no fast paths)",
 }
 
 
@@ -76,7 +89,7 @@ def measure_training(script, args, updates: int, warmup: int) -> float:
 
 
 def run_worker(config: str, a: Args) -> dict:
-    sys.path.insert(0, ROOT)
+    sys.path.insert(0, a.root)
     import numpy as np
     import torch
 
@@ -98,9 +111,11 @@ def run_worker(config: str, a: Args) -> dict:
         for action in actions:
             envs.step(action)
         sps = len(actions) / (time.perf_counter() - start)
-    elif config == "ppo":
+    elif config in ("ppo", "ppo_autograd"):
         import ppo_baseline
 
+        if config == "ppo_autograd":
+            common.update(autograd=True)
         sps = measure_training(ppo_baseline, ppo_baseline.Args(total_timesteps=total, **common), a.updates, a.warmup)
     else:
         import cascade_ppo_continuous as cpc
@@ -110,6 +125,8 @@ def run_worker(config: str, a: Args) -> dict:
             common.update(eval_every=10_000, eval_episodes=10)
         if config == "cascade6_parallel":
             extra.update(num_envs=a.num_envs_parallel, num_steps=BATCH // a.num_envs_parallel)
+        if config == "cascade6_autograd":
+            extra.update(autograd=True)
         sps = measure_training(cpc, cpc.Args(**common, **extra), a.updates, a.warmup)
     # The training process itself (Linux reports KiB). Not RUSAGE_CHILDREN: short-lived helper forks
     # (ctypes' library lookup) would report the parent's size again; worker processes are listed apart.
@@ -122,13 +139,26 @@ def main() -> None:
     if a.worker:
         print(json.dumps(run_worker(a.worker, a)))
         return
-    configs = [c for c in CONFIGS if c != "cascade6_parallel" or a.num_envs_parallel > 1]
+    configs = [c for c in CONFIGS if (c in a.configs or c in ("env_random", "ppo"))
+               and (c != "cascade6_parallel" or a.num_envs_parallel > 1)]
+    roots = {c: ROOT for c in configs}
+    if a.ref:  # the scripts of an older commit, exported to a temp folder
+        ref_root = tempfile.mkdtemp(prefix="throughput_ref_")
+        archive = subprocess.run(["git", "-C", ROOT, "archive", a.ref], capture_output=True)
+        if archive.returncode != 0:
+            sys.exit(f"error: cannot export --ref {a.ref}: {archive.stderr.decode().strip()}")
+        subprocess.run(["tar", "-x", "-C", ref_root], input=archive.stdout, check=True)
+        for c in ("ppo", "cascade6"):
+            CONFIGS[f"{c}@ref"] = f"{CONFIGS[c]} @ {a.ref}"
+            roots[f"{c}@ref"] = ref_root
+            configs.insert(configs.index(c) + 1, f"{c}@ref")
     results: dict[str, list[dict]] = {c: [] for c in configs}
     for repeat in range(a.repeats):
         for config in configs:  # interleaved, so slow drifts of the machine hit every config alike
-            cmd = [sys.executable, __file__, "--worker", config, "--env-id", a.env_id, "--updates", str(a.updates),
-                   "--warmup", str(a.warmup), "--num-envs-parallel", str(max(a.num_envs_parallel, 1))]
-            out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+            cmd = [sys.executable, __file__, "--worker", config.split("@")[0], "--env-id", a.env_id, "--updates",
+                   str(a.updates), "--warmup", str(a.warmup), "--num-envs-parallel", str(max(a.num_envs_parallel, 1)),
+                   "--root", roots[config]]
+            out = subprocess.run(cmd, capture_output=True, text=True, cwd=roots[config])
             if out.returncode != 0:
                 sys.exit(f"error: {config} failed:\n{out.stderr[-2000:]}")
             results[config].append(json.loads(out.stdout.strip().splitlines()[-1]))
@@ -142,8 +172,9 @@ def main() -> None:
     for c in summary:
         summary[c]["vs_limit"] = summary[c]["sps"] / limit
         summary[c]["vs_ppo"] = summary[c]["sps"] / ppo
-    summary["eval_wallclock_ratio"] = summary["cascade6"]["sps"] / summary["cascade6_eval"]["sps"]
-    meta = {"env_id": a.env_id, "updates": a.updates, "warmup": a.warmup, "repeats": a.repeats,
+    if "cascade6_eval" in summary:
+        summary["eval_wallclock_ratio"] = summary["cascade6"]["sps"] / summary["cascade6_eval"]["sps"]
+    meta = {"env_id": a.env_id, "updates": a.updates, "warmup": a.warmup, "repeats": a.repeats, "ref": a.ref,
             "cpus": os.cpu_count(), "python": sys.version.split()[0]}
     if a.json:
         print(json.dumps({"meta": meta, "results": summary}, indent=2))
@@ -154,12 +185,16 @@ def main() -> None:
     for c in configs:
         r = summary[c]
         print(f"| {CONFIGS[c]} | {r['sps']:.0f} | {r['vs_limit']:.2f} | {r['vs_ppo']:.2f} | {r['peak_rss_mb']:.0f} |")
-    print(f"\nwall-clock with evaluation / without: {summary['eval_wallclock_ratio']:.2f}x")
+    if "eval_wallclock_ratio" in summary:
+        print(f"\nwall-clock with evaluation / without: {summary['eval_wallclock_ratio']:.2f}x")
+    if a.ref:
+        for c in ("ppo", "cascade6"):
+            print(f"{c}: this tree / {a.ref} = {summary[c]['sps'] / summary[c + '@ref']['sps']:.3f}")
     print("\ntargets (issue 4):")
     checks = [
         ("PPO >= 0.5x the env limit", summary["ppo"]["vs_limit"], 0.5, ">="),
         ("Cascade (6 nets) >= 0.9x PPO", summary["cascade6"]["vs_ppo"], 0.9, ">="),
-        ("wall-clock with evaluation <= 1.25x without", summary["eval_wallclock_ratio"], 1.25, "<="),
+        ("wall-clock with evaluation <= 1.25x without", summary.get("eval_wallclock_ratio", float("nan")), 1.25, "<="),
         ("peak memory of Cascade <= 600 MB", summary["cascade6"]["peak_rss_mb"], 600, "<="),
     ]
     for name, value, bound, op in checks:
