@@ -166,7 +166,7 @@ def stacked_affine(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) ->
 
 
 @functools.lru_cache
-def at_or_above_matrix(n: int, dtype: torch.dtype = torch.float32, device: str = "cpu") -> torch.Tensor:
+def at_or_above_matrix(n: int, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
     """A [n, n-1] 0/1 matrix: row i is net i (1..n), column j the fallback l_j of net j (2..n); the entry
     is 1 where j >= i, so that (matrix @ log l)_i = sum_{j>=i} log l_j. Cached: always a normal tensor, never
     an inference-mode one, so autograd can use it whichever path made it first."""
@@ -183,10 +183,10 @@ def contributions(fallback_logit: torch.Tensor) -> torch.Tensor:
     log w_i = sum_{j>=i} log l_j - z_i (no z_1 term): one matmul and a subtraction, in log space so that
     no product underflows. Returns w [n, B], summing to 1 over nets.
     """
-    matrix = at_or_above_matrix(fallback_logit.shape[0] + 1, fallback_logit.dtype, str(fallback_logit.device))
+    matrix = at_or_above_matrix(fallback_logit.shape[0] + 1, fallback_logit.dtype, fallback_logit.device)
     log_weight = torch.mm(matrix, nn.functional.logsigmoid(fallback_logit))
-    own_logit = torch.cat([fallback_logit.new_zeros(1, fallback_logit.shape[1]), fallback_logit])  # z_1 := 0
-    return torch.exp(log_weight - own_logit)
+    log_weight[1:] -= fallback_logit  # z_i of nets 2..n (net 1 has none)
+    return log_weight.exp()
 
 
 class CascadeActor(nn.Module):
@@ -214,6 +214,17 @@ class CascadeActor(nn.Module):
         self.fallback_weight = nn.Parameter(torch.empty(0, hidden_size, 1))
         self.fallback_bias = nn.Parameter(torch.empty(0, 1, 1))
         self.log_std = nn.Parameter(torch.empty(0, act_dim))
+        self._refresh()
+
+    def _refresh(self) -> None:
+        # The hidden layers' (weight, bias) pairs as a plain tuple: each access to a ParameterList element
+        # costs ~3 us, more than a layer's matmul at these sizes. Rebuilt whenever Parameters are replaced.
+        self.hidden_layers = tuple(zip(self.hidden_weights, self.hidden_biases))
+
+    def _apply(self, fn, recurse=True):  # .to(device), .double() and friends may replace the Parameters
+        module = super()._apply(fn, recurse)
+        self._refresh()
+        return module
 
     @property
     def size(self) -> int:
@@ -238,6 +249,7 @@ class CascadeActor(nn.Module):
             if name in grown:
                 new = torch.cat([param.data, grown[name].unsqueeze(0).to(param.device)])
                 self._replace(name, nn.Parameter(new))
+        self._refresh()
 
     def freeze_below(self, num_frozen: int) -> None:
         """Give no gradient to base nets 1..num_frozen (the rest train)."""
@@ -254,7 +266,7 @@ class CascadeActor(nn.Module):
         (nets 2..n). `cache`, when given, keeps the activations for the hand-written backward (section 2)."""
         hidden = obs  # every base net reads the same observation
         activations = [hidden]
-        for weight, bias in zip(self.hidden_weights, self.hidden_biases):
+        for weight, bias in self.hidden_layers:
             hidden = torch.tanh(stacked_affine(hidden, self.trainable(weight, 0), self.trainable(bias, 0)))
             activations.append(hidden)  # [n, B, H], all nets at once
         means = stacked_affine(hidden, self.trainable(self.mean_weight, 0), self.trainable(self.mean_bias, 0))
@@ -317,10 +329,19 @@ class TanhMLP(nn.Module):
             weight, bias = orthogonal_linear(d_in, d_out, gain)
             self.weights.append(nn.Parameter(weight))
             self.biases.append(nn.Parameter(bias[0]))
+        self._refresh()
+
+    def _refresh(self) -> None:  # (weight, bias) pairs as a plain tuple, as in CascadeActor
+        self.layers = tuple(zip(self.weights, self.biases))
+
+    def _apply(self, fn, recurse=True):
+        module = super()._apply(fn, recurse)
+        self._refresh()
+        return module
 
     def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
         """Output [B, out]; appends each hidden activation to `hidden` when given (for the hand-written backward)."""
-        *layers, last = zip(self.weights, self.biases)
+        *layers, last = self.layers
         for weight, bias in layers:
             x = torch.tanh(torch.addmm(bias, x, weight))
             if hidden is not None:
@@ -676,12 +697,12 @@ def ppo_loss_gradients(
         grad_v = value - returns
     grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
 
-    entropy_loss = gaussian_entropy(log_std).mean()
     loss = pg_loss + args.vf_coef * v_loss
     if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
-        loss = loss - args.ent_coef * entropy_loss
+        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
         grad_log_std -= args.ent_coef / batch
-    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy_loss,
+    # the entropy is only logged (from the epoch's last minibatch): `log_std` lets the logger compute it
+    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "log_std": log_std,
               "logratio": logratio, "ratio": ratio}
     return losses, grad_mean, grad_log_std, grad_value
 
@@ -689,7 +710,7 @@ def ppo_loss_gradients(
 def cascade_backward(actor: CascadeActor, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
     """Write every actor parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `actor(obs, cache)`."""
     activations, means, fallback, weight = (cache[key] for key in ("activations", "means", "fallback", "weight"))
-    hidden_layers = list(zip(actor.hidden_weights, actor.hidden_biases))
+    hidden_layers = actor.hidden_layers
     # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
     grad_means = weight[..., None] * grad_mean  # [n, B, A]
     torch.mm(weight, grad_log_std, out=actor.log_std.grad)  # sum over the batch of w_i dL/dlog_std
@@ -725,8 +746,8 @@ def cascade_backward(actor: CascadeActor, cache: dict, grad_mean: torch.Tensor, 
 def mlp_backward(mlp: TanhMLP, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
     """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `mlp(x, hidden)`."""
     inputs = [x, *hidden]
-    for i in reversed(range(len(mlp.weights))):
-        weight, bias = mlp.weights[i], mlp.biases[i]
+    for i in reversed(range(len(mlp.layers))):
+        weight, bias = mlp.layers[i]
         torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
         torch.sum(grad_output, 0, out=bias.grad)
         if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2), with g = dL/dz W^T
@@ -837,13 +858,23 @@ class FastPaths:
         self.worst = {"acting": 0.0, "gradients": 0.0}  # largest disagreement seen by the checks that passed
         self.check_seconds = 0.0
         self.messages: list[str] = []
+        self._twin: tuple = (None, None, None)  # (actor, fingerprint of its weights, float64 copy)
+
+    def float64_actor(self, actor: nn.Module) -> nn.Module:
+        """A float64 copy of `actor`, reused while its weights are unchanged (the acting check at a rollout's
+        start, then the gradient check after it); the weights' sums tell whether they changed."""
+        with torch.no_grad():
+            fingerprint = torch.stack([p.sum() for p in actor.parameters()])
+        if self._twin[0] is not actor or not torch.equal(self._twin[1], fingerprint):
+            self._twin = (actor, fingerprint, float64_copy(actor))
+        return self._twin[2]
 
     def acting_policy(self, actor: CascadeActor, check_obs: np.ndarray, step: int) -> Callable:
         """The rollout's acting function: the numpy forward if it matches `actor.forward` on `check_obs`."""
         if not self.acting:
             return torch_policy(actor)
         start = time.perf_counter()
-        twin = float64_copy(actor)
+        twin = self.float64_actor(actor)
         obs = torch.as_tensor(check_obs, dtype=torch.float64)
         reference = twin(obs.to(twin.log_std.device))[:2]
         reference = [r.cpu() for r in reference]
@@ -863,7 +894,7 @@ class FastPaths:
         if not self.gradients:
             return
         start = time.perf_counter()
-        actor64, critic64 = float64_copy(actor), float64_copy(critic)
+        actor64, critic64 = self.float64_actor(actor), float64_copy(critic)
         params = [*actor64.parameters(), *critic64.parameters()]
         obs, *rest = (t.detach().double() for t in minibatch)
         with torch.enable_grad():
@@ -1116,7 +1147,8 @@ class RunLog:
         write("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
         write("losses/value_loss", parts["value_loss"].item(), global_step)
         write("losses/policy_loss", parts["policy_loss"].item(), global_step)
-        write("losses/entropy", parts["entropy"].item(), global_step)
+        entropy = parts["entropy"] if "entropy" in parts else gaussian_entropy(parts["log_std"]).mean()
+        write("losses/entropy", entropy.item(), global_step)
         write("losses/old_approx_kl", old_approx_kl.item(), global_step)
         write("losses/approx_kl", approx_kl.item(), global_step)
         write("losses/clipfrac", ((ratios - 1.0).abs() > self.args.clip_coef).float().mean().item(), global_step)

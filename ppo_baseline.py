@@ -141,10 +141,21 @@ class TanhMLP(nn.Module):
             nn.init.orthogonal_(weight, gain)
             self.weights.append(nn.Parameter(weight.T.contiguous()))
             self.biases.append(nn.Parameter(torch.zeros(d_out)))
+        self._refresh()
+
+    def _refresh(self) -> None:
+        # The (weight, bias) pairs as a plain tuple: each access to a ParameterList element costs ~3 us,
+        # more than a layer's matmul at these sizes. Rebuilt whenever the Parameters are replaced.
+        self.layers = tuple(zip(self.weights, self.biases))
+
+    def _apply(self, fn, recurse=True):  # .to(device), .double() and friends may replace the Parameters
+        module = super()._apply(fn, recurse)
+        self._refresh()
+        return module
 
     def forward(self, x: torch.Tensor, hidden: list[torch.Tensor] | None = None) -> torch.Tensor:
         """Output [B, out]; appends each hidden activation to `hidden` when given (for the hand-written backward)."""
-        *layers, last = zip(self.weights, self.biases)
+        *layers, last = self.layers
         for weight, bias in layers:
             x = torch.tanh(torch.addmm(bias, x, weight))
             if hidden is not None:
@@ -375,8 +386,7 @@ def numpy_mlp_forward(layers: tuple, x: np.ndarray) -> np.ndarray:
 def numpy_policy(actor: Actor) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """obs [B, obs_dim] (numpy) -> mean [B, A], log-std [1, A], as `actor.forward`, computed on numpy copies
     of the current weights (in their dtype): for acting during a rollout (the copies do not follow updates)."""
-    layers = tuple((w.detach().cpu().numpy().copy(), b.detach().cpu().numpy().copy())
-                   for w, b in zip(actor.mean_net.weights, actor.mean_net.biases))
+    layers = tuple((w.detach().cpu().numpy().copy(), b.detach().cpu().numpy().copy()) for w, b in actor.mean_net.layers)
     log_std = actor.log_std.detach().cpu().numpy().copy()
     return lambda obs: (numpy_mlp_forward(layers, obs), log_std)
 
@@ -448,12 +458,12 @@ def ppo_loss_gradients(
         grad_v = value - returns
     grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
 
-    entropy_loss = gaussian_entropy(log_std).mean()
     loss = pg_loss + args.vf_coef * v_loss
     if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
-        loss = loss - args.ent_coef * entropy_loss
+        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
         grad_log_std -= args.ent_coef / batch
-    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy_loss,
+    # the entropy is only logged (from the epoch's last minibatch): `log_std` lets the logger compute it
+    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "log_std": log_std,
               "logratio": logratio, "ratio": ratio}
     return losses, grad_mean, grad_log_std, grad_value
 
@@ -461,8 +471,8 @@ def ppo_loss_gradients(
 def mlp_backward(mlp: TanhMLP, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
     """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `mlp(x, hidden)`."""
     inputs = [x, *hidden]
-    for i in reversed(range(len(mlp.weights))):
-        weight, bias = mlp.weights[i], mlp.biases[i]
+    for i in reversed(range(len(mlp.layers))):
+        weight, bias = mlp.layers[i]
         torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
         torch.sum(grad_output, 0, out=bias.grad)
         if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2), with g = dL/dz W^T
@@ -580,13 +590,23 @@ class FastPaths:
         self.worst = {"acting": 0.0, "gradients": 0.0}  # largest disagreement seen by the checks that passed
         self.check_seconds = 0.0
         self.messages: list[str] = []
+        self._twin: tuple = (None, None, None)  # (actor, fingerprint of its weights, float64 copy)
+
+    def float64_actor(self, actor: nn.Module) -> nn.Module:
+        """A float64 copy of `actor`, reused while its weights are unchanged (the acting check at a rollout's
+        start, then the gradient check after it); the weights' sums tell whether they changed."""
+        with torch.no_grad():
+            fingerprint = torch.stack([p.sum() for p in actor.parameters()])
+        if self._twin[0] is not actor or not torch.equal(self._twin[1], fingerprint):
+            self._twin = (actor, fingerprint, float64_copy(actor))
+        return self._twin[2]
 
     def acting_policy(self, actor: Actor, check_obs: np.ndarray, step: int) -> Callable:
         """The rollout's acting function: the numpy forward if it matches `actor.forward` on `check_obs`."""
         if not self.acting:
             return torch_policy(actor)
         start = time.perf_counter()
-        twin = float64_copy(actor)
+        twin = self.float64_actor(actor)
         obs = torch.as_tensor(check_obs, dtype=torch.float64)
         reference = twin(obs.to(twin.log_std.device))
         reference = [r.cpu() for r in reference]
@@ -606,7 +626,7 @@ class FastPaths:
         if not self.gradients:
             return
         start = time.perf_counter()
-        actor64, critic64 = float64_copy(actor), float64_copy(critic)
+        actor64, critic64 = self.float64_actor(actor), float64_copy(critic)
         params = [*actor64.parameters(), *critic64.parameters()]
         obs, *rest = (t.detach().double() for t in minibatch)
         with torch.enable_grad():
@@ -844,7 +864,8 @@ class RunLog:
         write("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
         write("losses/value_loss", parts["value_loss"].item(), global_step)
         write("losses/policy_loss", parts["policy_loss"].item(), global_step)
-        write("losses/entropy", parts["entropy"].item(), global_step)
+        entropy = parts["entropy"] if "entropy" in parts else gaussian_entropy(parts["log_std"]).mean()
+        write("losses/entropy", entropy.item(), global_step)
         write("losses/old_approx_kl", old_approx_kl.item(), global_step)
         write("losses/approx_kl", approx_kl.item(), global_step)
         write("losses/clipfrac", ((ratios - 1.0).abs() > self.args.clip_coef).float().mean().item(), global_step)

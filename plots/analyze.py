@@ -334,7 +334,10 @@ def run_parameters(run: common.Run) -> float | None:
 
 
 def run_seconds(run: common.Run) -> float:
-    """Wall time from the first to the last logged scalar event."""
+    """Training time: an exported run's (from its final checkpoint), else the wall time from the first to
+    the last logged scalar event."""
+    if run.meta.get("seconds"):
+        return float(run.meta["seconds"])
     first = min(float(s.wall_times.min()) for s in run.scalars.values() if len(s.wall_times))
     last = max(float(s.wall_times.max()) for s in run.scalars.values() if len(s.wall_times))
     return last - first

@@ -97,10 +97,12 @@ class Run:
     timestamp: int
     hparams: dict[str, str] = field(default_factory=dict)
     scalars: dict[str, Series] = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)  # of an exported run (results/): command, commit, seconds
 
     @property
     def name(self) -> str:
-        return os.path.basename(self.path)
+        name = os.path.basename(self.path)
+        return name[: -len(".json")] if name.endswith(".json") else name
 
     def series(self, tag: str) -> Series:
         if tag not in self.scalars:
@@ -124,15 +126,36 @@ def has_event_files(folder: str) -> bool:
 
 
 def find_run_dirs(roots: Sequence[str]) -> list[str]:
-    """Every folder under `roots` (at any depth) that is named like a run and holds event files."""
+    """Every folder under `roots` (at any depth) that is named like a run and holds event files, and every
+    exported run `<run_name>.json` (plots/export_results.py; the committed results/runs/)."""
     found = []
     for root in roots:
         if not os.path.isdir(root):
             fail(f"runs folder '{root}' does not exist")
-        for folder, _dirs, _files in os.walk(root):
+        for folder, _dirs, files in os.walk(root):
             if parse_run_name(os.path.basename(folder)) and has_event_files(folder):
                 found.append(folder)
+            found += [os.path.join(folder, f) for f in files if f.endswith(".json") and parse_run_name(f[:-5])]
     return sorted(found)
+
+
+def read_exported_run(path: str) -> Run:
+    """A run exported by plots/export_results.py: its scalars, settings and metadata."""
+    import json
+
+    try:
+        with open(path) as f:
+            data = json.load(f)
+        env_id, exp_name, seed, timestamp = parse_run_name(os.path.basename(path)[:-5])
+        run = Run(path, env_id, exp_name, seed, timestamp, hparams=data["hparams"])
+        for tag, series in data["scalars"].items():
+            run.scalars[tag] = Series(np.array(series["steps"], dtype=np.int64),
+                                      np.array(series["values"], dtype=np.float64),
+                                      np.array(series["wall_times"], dtype=np.float64))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        fail(f"cannot read exported run {path} ({type(exc).__name__}: {exc}); re-export it with plots/export_results.py")
+    run.meta = {key: data.get(key) for key in ("command", "commit", "seconds", "final_step")}
+    return run
 
 
 def parse_hparams(text: str) -> dict[str, str]:
@@ -146,7 +169,10 @@ def parse_hparams(text: str) -> dict[str, str]:
 
 
 def read_run(path: str) -> Run:
-    """Every scalar and the hyperparameter table of one run folder (resumed runs: TensorBoard's purge applies)."""
+    """Every scalar and the hyperparameter table of one run folder (resumed runs: TensorBoard's purge applies),
+    or of an exported run file."""
+    if path.endswith(".json"):
+        return read_exported_run(path)
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     env_id, exp_name, seed, timestamp = parse_run_name(os.path.basename(path))

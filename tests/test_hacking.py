@@ -66,7 +66,9 @@ EDITS = {
                   "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef + 0.01 * mean.pow(2).mean()"),
     "relu base nets": ("hidden = torch.tanh(stacked_affine(", "hidden = torch.relu(stacked_affine("),
     "relu mlp": ("x = torch.tanh(torch.addmm(bias, x, weight))", "x = torch.relu(torch.addmm(bias, x, weight))"),
-    "softmax gating": ("return torch.exp(log_weight - own_logit)", "return torch.softmax(own_logit, 0)"),
+    "softmax gating": ("    return log_weight.exp()",
+                       "    return torch.softmax(torch.cat([fallback_logit.new_zeros(1, fallback_logit.shape[1]), "
+                       "fallback_logit]), 0)"),
 }
 CASES = [  # script, edit, the parts the warnings must name
     ("cascade_ppo_continuous.py", "loss term", ["ppo_loss_gradients computes another loss than ppo_loss"]),
