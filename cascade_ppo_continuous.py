@@ -257,8 +257,10 @@ class CascadeActor(nn.Module):
 
     def trainable(self, param: torch.Tensor, first_net: int) -> torch.Tensor:
         """`param` with the rows of frozen nets detached, so that no gradient reaches them."""
-        rows = max(self.num_frozen - first_net, 0)
-        return param if rows == 0 else torch.cat([param[:rows].detach(), param[rows:]])
+        if self.num_frozen <= first_net:  # nothing frozen in this parameter (the default)
+            return param
+        rows = self.num_frozen - first_net
+        return torch.cat([param[:rows].detach(), param[rows:]])
 
     def base_nets(self, obs: torch.Tensor, cache: dict | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -711,24 +713,26 @@ def cascade_backward(actor: CascadeActor, cache: dict, grad_mean: torch.Tensor, 
     """Write every actor parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `actor(obs, cache)`."""
     activations, means, fallback, weight = (cache[key] for key in ("activations", "means", "fallback", "weight"))
     hidden_layers = actor.hidden_layers
+    mean_weight, mean_bias, fallback_weight, fallback_bias, log_std = (  # one lookup each: nn.Module's are slow
+        actor.mean_weight, actor.mean_bias, actor.fallback_weight, actor.fallback_bias, actor.log_std)
     # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
     grad_means = weight[..., None] * grad_mean  # [n, B, A]
-    torch.mm(weight, grad_log_std, out=actor.log_std.grad)  # sum over the batch of w_i dL/dlog_std
+    torch.mm(weight, grad_log_std, out=log_std.grad)  # sum over the batch of w_i dL/dlog_std
     hidden = activations[-1]
-    torch.bmm(hidden.transpose(1, 2), grad_means, out=actor.mean_weight.grad)
-    torch.sum(grad_means, 1, keepdim=True, out=actor.mean_bias.grad)
-    grad_hidden = torch.bmm(grad_means, actor.mean_weight.transpose(1, 2))  # [n, B, H]
+    torch.bmm(hidden.transpose(1, 2), grad_means, out=mean_weight.grad)
+    torch.sum(grad_means, 1, keepdim=True, out=mean_bias.grad)
+    grad_hidden = torch.bmm(grad_means, mean_weight.transpose(1, 2))  # [n, B, H]
     if fallback.shape[0]:
         # Fallback k (net k >= 2) acts through C_k = l_k C_{k-1} + (1 - l_k) b_k, and C_n changes by
         # later_k = prod_{j>k} l_j per unit of C_k, so with g = (dL/dmean, dL/dlog_std) and z_k = logit(l_k):
         #   dL/dz_k = l_k (1 - l_k) later_k <g, C_{k-1} - b_k> = S_{k-1} - l_k S_k,
         # where S_k = sum_{i<=k} w_i <g, b_i> = later_k <g, C_k> (a cumulative sum, no division).
-        weighted_q = torch.addcmul((grad_means * means).sum(-1), weight, actor.log_std @ grad_log_std.T)  # [n, B]
+        weighted_q = torch.addcmul((grad_means * means).sum(-1), weight, log_std @ grad_log_std.T)  # [n, B]
         partial_sums = weighted_q.cumsum_(0)  # S_1..S_n
         grad_logit = torch.addcmul(partial_sums[:-1], fallback, partial_sums[1:], value=-1.0).unsqueeze(-1)
-        torch.bmm(hidden[1:].transpose(1, 2), grad_logit, out=actor.fallback_weight.grad)
-        torch.sum(grad_logit, 1, keepdim=True, out=actor.fallback_bias.grad)
-        grad_hidden[1:].baddbmm_(grad_logit, actor.fallback_weight.transpose(1, 2))
+        torch.bmm(hidden[1:].transpose(1, 2), grad_logit, out=fallback_weight.grad)
+        torch.sum(grad_logit, 1, keepdim=True, out=fallback_bias.grad)
+        grad_hidden[1:].baddbmm_(grad_logit, fallback_weight.transpose(1, 2))
     for i in reversed(range(len(hidden_layers))):
         weight_i, bias_i = hidden_layers[i]
         below = activations[i] if i else activations[0].expand(grad_hidden.shape[0], -1, -1)  # obs, shared

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import cascade_ppo_continuous as cpc
-import ppo_baseline
+import learning_checks
 from helpers import error_line, only_run_dir, read_scalars, run_script
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
@@ -159,24 +159,11 @@ def test_ablations_run(tmp_path, overrides):
         envs.close()
 
 
-def assert_learns(script, args) -> None:
-    """The evaluation return at the end beats the one at step 0 by 5x and exceeds 100."""
-    returns = read_scalars(script.train(args)["run_dir"])["eval/episodic_return"]
-    first, last = returns[0][1], returns[-1][1]
-    assert returns[0][0] == 0
-    assert last > 5 * first and last > 100, returns
-
-
 @pytest.mark.slow
-def test_cascade_learns_inverted_pendulum(tmp_path):
-    assert_learns(cpc, cpc.Args(env_id="InvertedPendulum-v4", n=2, k=16384, eval_every=8192, eval_episodes=10,
-                                track_dir=str(tmp_path), seed=1))
-
-
-@pytest.mark.slow
-def test_baseline_learns_inverted_pendulum(tmp_path):
-    assert_learns(ppo_baseline, ppo_baseline.Args(env_id="InvertedPendulum-v4", total_timesteps=32768, eval_every=8192,
-                                                  eval_episodes=10, track_dir=str(tmp_path), seed=1))
+@pytest.mark.parametrize("check", ["cascade_ppo_inverted_pendulum", "ppo_inverted_pendulum"])
+def test_learns_inverted_pendulum(check, tmp_path):
+    """InvertedPendulum-v4, 32K steps (see tests/learning_checks.py for the spread the threshold comes from)."""
+    learning_checks.assert_learns(check, str(tmp_path))
 
 
 def test_evaluation_in_worker_process_matches_inline(tmp_path):
