@@ -114,7 +114,10 @@ class Run:
 
 
 def parse_run_name(name: str) -> tuple[str, str, int, int] | None:
-    """(env_id, exp_name, seed, timestamp) of a run folder name, or None if it is not one."""
+    """(env_id, exp_name, seed, timestamp) of a run folder name (or of an exported run file's path: its
+    `.json` and folders are ignored), or None if it is not one."""
+    name = os.path.basename(name)
+    name = name[: -len(".json")] if name.endswith(".json") else name
     match = RUN_NAME.match(name)
     if match is None:
         return None
@@ -146,7 +149,7 @@ def read_exported_run(path: str) -> Run:
     try:
         with open(path) as f:
             data = json.load(f)
-        env_id, exp_name, seed, timestamp = parse_run_name(os.path.basename(path)[:-5])
+        env_id, exp_name, seed, timestamp = parse_run_name(path)
         run = Run(path, env_id, exp_name, seed, timestamp, hparams=data["hparams"])
         for tag, series in data["scalars"].items():
             run.scalars[tag] = Series(np.array(series["steps"], dtype=np.int64),
@@ -261,7 +264,7 @@ def select_runs(
     if not all_dirs:
         fail(f"no run folders (named <env_id>__<exp_name>__<seed>__<timestamp>, holding TensorBoard event files) "
              f"under {where}")
-    found = [parse_run_name(os.path.basename(d)) for d in all_dirs]
+    found = [parse_run_name(d) for d in all_dirs]
     chosen = [d for d, (env, exp, _, _) in zip(all_dirs, found)
               if (not envs or env in envs) and (not names or exp in names)]
     if not chosen:

@@ -106,7 +106,8 @@ def summary(args: Args) -> str:
             runs = selection.groups.get((env, label), [])
             if runs:
                 hours = np.array([analyze.run_seconds(r) for r in runs]) / 3600
-                runtime_rows.append([env, label, len(runs), f"{hours.mean():.2f} h", f"{hours.mean() / 6:.2f} h"])
+                millions = np.mean([r.last_step() for r in runs]) / 1e6
+                runtime_rows.append([env, label, len(runs), f"{hours.mean():.2f} h", f"{hours.mean() / millions:.2f} h"])
     lines += ["", "## Runtime (Table 2): training time per run on this 2-core machine, two runs side by side", "",
               common.markdown_table(["env", "algorithm", "runs", "per run", "per 1M steps"], runtime_rows),
               "", "Paper (28-core Xeon Gold 5120, 6M steps on Ant): PPO 5.5 h, Cascade 8.6 h."]
@@ -114,7 +115,7 @@ def summary(args: Args) -> str:
 
 
 def envs_present(folder: str) -> set[str]:
-    return {common.parse_run_name(os.path.basename(p)[:-5])[0] for p in common.find_run_dirs([folder])}
+    return {common.parse_run_name(p)[0] for p in common.find_run_dirs([folder])}
 
 
 def main(args: Args) -> list[str]:
