@@ -498,6 +498,16 @@ def save_checkpoint(path: str, payload: dict) -> None:
     os.replace(tmp, path)
 
 
+def atomic_copy(source: str, path: str) -> None:
+    """Copy `source` to `path` as `save_checkpoint` writes: temp file, fsync, rename."""
+    tmp = f"{path}.tmp"
+    with open(source, "rb") as src, open(tmp, "wb") as dst:
+        shutil.copyfileobj(src, dst)
+        dst.flush()
+        os.fsync(dst.fileno())
+    os.replace(tmp, path)
+
+
 def load_checkpoint(path: str) -> dict:
     """Load `runs/<run>` (its latest checkpoint) or a checkpoint file; one-line error if missing or corrupt."""
     if os.path.isdir(path):
@@ -864,7 +874,7 @@ def train(args: Args, checkpoint: dict | None = None,
 
             if update == updates_per_iteration:
                 save_checkpoint(checkpoint_path, make_checkpoint(iteration, update))
-                shutil.copyfile(checkpoint_path, os.path.join(run_dir, f"iteration_{iteration}.pt"))
+                atomic_copy(checkpoint_path, os.path.join(run_dir, f"iteration_{iteration}.pt"))
                 last_checkpoint_step = global_step
             elif args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every:
                 save_checkpoint(checkpoint_path, make_checkpoint(iteration, update))

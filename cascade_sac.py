@@ -552,6 +552,16 @@ def save_checkpoint(path: str, payload: dict) -> None:
     os.replace(tmp, path)
 
 
+def atomic_copy(source: str, path: str) -> None:
+    """Copy `source` to `path` as `save_checkpoint` writes: temp file, fsync, rename."""
+    tmp = f"{path}.tmp"
+    with open(source, "rb") as src, open(tmp, "wb") as dst:
+        shutil.copyfileobj(src, dst)
+        dst.flush()
+        os.fsync(dst.fileno())
+    os.replace(tmp, path)
+
+
 def load_checkpoint(path: str) -> dict:
     """Load `runs/<run>` (its latest checkpoint) or a checkpoint file; one-line error if missing or corrupt."""
     if os.path.isdir(path):
@@ -893,7 +903,7 @@ def train(args: Args, checkpoint: dict | None = None,
             fail(f"non-finite parameters at global_step={global_step} (iteration {iteration}); "
                  f"the last good checkpoint {checkpoint_path} is intact")
         save_checkpoint(checkpoint_path, make_checkpoint(iteration))
-        shutil.copyfile(checkpoint_path, os.path.join(run_dir, f"iteration_{iteration}.pt"))
+        atomic_copy(checkpoint_path, os.path.join(run_dir, f"iteration_{iteration}.pt"))
         progress.message(f"iteration {iteration} done: global_step={global_step}, "
                          f"SPS={int(global_step / (time.time() - start_time))}")
 

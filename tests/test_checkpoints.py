@@ -55,6 +55,28 @@ def test_crash_mid_write_leaves_previous_checkpoint_loadable(tmp_path, monkeypat
     assert cpc.load_checkpoint(path)["global_step"] == 1
 
 
+@pytest.mark.parametrize("module_name", ["cascade_ppo_continuous", "cascade_ppo_discrete", "cascade_sac",
+                                         "cascade_ddpg"])
+def test_iteration_copy_is_atomic(module_name, tmp_path, monkeypatch):
+    """A crash while iteration_<i>.pt is being written leaves no truncated iteration_<i>.pt behind."""
+    import importlib
+
+    module = importlib.import_module(module_name)
+    (tmp_path / "checkpoint.pt").write_bytes(b"x" * 10_000)
+
+    def crash(src, dst, *args, **kwargs):  # the process dies a hundred bytes into the copy
+        dst.write(src.read(100))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(module.shutil, "copyfileobj", crash)
+    with pytest.raises(KeyboardInterrupt):
+        module.atomic_copy(str(tmp_path / "checkpoint.pt"), str(tmp_path / "iteration_1.pt"))
+    assert not (tmp_path / "iteration_1.pt").exists()
+    monkeypatch.undo()
+    module.atomic_copy(str(tmp_path / "checkpoint.pt"), str(tmp_path / "iteration_1.pt"))
+    assert (tmp_path / "iteration_1.pt").read_bytes() == b"x" * 10_000
+
+
 def test_resume_at_iteration_boundary_gives_identical_parameters(finished_run, tmp_path):
     resumed = resume_from(cpc, os.path.join(finished_run["run_dir"], "iteration_1.pt"), tmp_path / "resumed")
     original, again = finished_run["actor"].state_dict(), resumed["actor"].state_dict()
