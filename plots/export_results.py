@@ -50,11 +50,13 @@ class Args:
 
 
 def planned_steps(hparams: dict[str, str]) -> int | None:
-    """The run's budget from its logged settings: n*k (Cascade scripts) or total_timesteps (baselines)."""
+    """The steps the run does, from its logged settings: whole rollout batches of n*k (Cascade scripts:
+    k // batch per iteration) or of total_timesteps (baselines)."""
     try:
+        batch = int(hparams["num_envs"]) * int(hparams["num_steps"])
         if "total_timesteps" in hparams:
-            return int(hparams["total_timesteps"])
-        return int(hparams["n"]) * int(hparams["k"])
+            return int(hparams["total_timesteps"]) // batch * batch
+        return int(hparams["n"]) * (int(hparams["k"]) // batch) * batch
     except (KeyError, ValueError):
         return None
 
