@@ -31,6 +31,7 @@ import pickle
 import random
 import shutil
 import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable
@@ -621,8 +622,36 @@ class Progress:
 # ----------------------------------------------------------------------------------------------
 # Training
 # ----------------------------------------------------------------------------------------------
+def check_run_settings(args: Args) -> None:
+    """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left)."""
+    if args.seed < 0:
+        fail(f"--seed must be a non-negative integer (got {args.seed}); numpy and gymnasium refuse negative seeds")
+    if args.torch_threads < 1:
+        fail(f"--torch-threads must be at least 1 (got {args.torch_threads})")
+    if not args.policy_lr >= 0:
+        fail(f"--policy-lr must be >= 0 (got {args.policy_lr})")
+    if not args.q_lr >= 0:
+        fail(f"--q-lr must be >= 0 (got {args.q_lr})")
+    check_track_dir(args.track_dir)
+
+
+def check_track_dir(track_dir: str) -> None:
+    """Run folders can be created under `track_dir` (probed in its nearest existing ancestor, nothing left behind)."""
+    if os.path.exists(track_dir) and not os.path.isdir(track_dir):
+        fail(f"--track-dir {track_dir} is a file, not a folder; pass a folder for the run folders")
+    ancestor = os.path.abspath(track_dir)
+    while not os.path.exists(ancestor):
+        ancestor = os.path.dirname(ancestor)
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=ancestor))
+    except OSError as exc:
+        fail(f"cannot create run folders under --track-dir {track_dir} ({exc.strerror or exc} in {ancestor}); "
+             "pass a writable folder")
+
+
 def validate(args: Args) -> None:
     """Reject bad input with one clear line before anything is created."""
+    check_run_settings(args)
     if args.n < 1:
         fail(f"--n must be at least 1 (got {args.n})")
     if not 0.0 < args.fallback_init < 1.0:
@@ -953,6 +982,8 @@ def resumed_args(args: Args, checkpoint: dict, given: set[str]) -> Args:
 
 def evaluate_saved(args: Args) -> dict:
     """--evaluate: the saved policy on --eval-episodes fresh episodes (stochastic unless --eval-deterministic)."""
+    if args.eval_episodes < 1:
+        fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
     checkpoint = load_checkpoint(args.evaluate)
     saved = Args(**checkpoint["args"])
     torch.set_num_threads(args.torch_threads)

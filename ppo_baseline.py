@@ -22,6 +22,7 @@ import os
 import pickle
 import random
 import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable
@@ -1160,13 +1161,44 @@ class Progress:
 # ----------------------------------------------------------------------------------------------
 # Input checks, seeding
 # ----------------------------------------------------------------------------------------------
+def check_run_settings(args: Args) -> None:
+    """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left)."""
+    if args.seed < 0:
+        fail(f"--seed must be a non-negative integer (got {args.seed}); numpy and gymnasium refuse negative seeds")
+    if args.torch_threads < 1:
+        fail(f"--torch-threads must be at least 1 (got {args.torch_threads})")
+    if args.checkpoint_every < 0:
+        fail(f"--checkpoint-every must be >= 0 (0: only the checkpoints a run always writes; got {args.checkpoint_every})")
+    if not args.learning_rate >= 0:
+        fail(f"--learning-rate must be >= 0 (got {args.learning_rate})")
+    if args.num_minibatches < 1 or args.update_epochs < 1:
+        fail(f"--num-minibatches and --update-epochs must be at least 1 (got {args.num_minibatches}, {args.update_epochs})")
+    check_track_dir(args.track_dir)
+
+
+def check_track_dir(track_dir: str) -> None:
+    """Run folders can be created under `track_dir` (probed in its nearest existing ancestor, nothing left behind)."""
+    if os.path.exists(track_dir) and not os.path.isdir(track_dir):
+        fail(f"--track-dir {track_dir} is a file, not a folder; pass a folder for the run folders")
+    ancestor = os.path.abspath(track_dir)
+    while not os.path.exists(ancestor):
+        ancestor = os.path.dirname(ancestor)
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=ancestor))
+    except OSError as exc:
+        fail(f"cannot create run folders under --track-dir {track_dir} ({exc.strerror or exc} in {ancestor}); "
+             "pass a writable folder")
+
+
 def validate(args: Args) -> None:
     """Reject bad input with one clear line before anything is created."""
+    check_run_settings(args)
     if args.hidden_size < 1:
         fail(f"--hidden-size must be at least 1 (got {args.hidden_size})")
     if args.num_envs < 1:
         fail(f"--num-envs must be at least 1 (got {args.num_envs})")
-    if args.num_steps is None:
+    steps_defaulted = args.num_steps is None
+    if steps_defaulted:
         args.num_steps = max(2048 // args.num_envs, 1)
     if args.num_steps < 1:
         fail(f"--num-steps must be at least 1 (got {args.num_steps})")
@@ -1177,7 +1209,12 @@ def validate(args: Args) -> None:
     if args.lr_schedule == "cyclic" and args.cycle_steps < batch_size:
         fail(f"--cycle-steps {args.cycle_steps} is smaller than one rollout batch ({batch_size})")
     if batch_size % args.num_minibatches:
-        fail(f"the batch size {batch_size} is not divisible by --num-minibatches {args.num_minibatches}")
+        hint = ""
+        if steps_defaulted:  # the batch is 2048 // num_envs * num_envs: say which --num-envs keep it whole
+            working = [e for e in range(1, 17) if (2048 // e * e) % args.num_minibatches == 0]
+            hint = f"; with --num-minibatches {args.num_minibatches}, --num-envs {', '.join(map(str, working))} work"
+        fail(f"the batch size {batch_size} (num_envs*num_steps) is not divisible by --num-minibatches "
+             f"{args.num_minibatches}{hint}, or set --num-steps")
     if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
         fail("--eval-every must be >= 0 and --eval-episodes >= 1")
     check_env_id(args.env_id)
@@ -1244,6 +1281,8 @@ def resumed_args(args: Args, checkpoint: dict, given: set[str]) -> Args:
 
 def evaluate_saved(args: Args) -> dict:
     """--evaluate: the saved policy with its saved observation statistics frozen."""
+    if args.eval_episodes < 1:
+        fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
     checkpoint = load_checkpoint(args.evaluate)
     saved = Args(**checkpoint["args"])
     if args.capture_video:
