@@ -24,7 +24,9 @@ RLJ 2025; SPEC.md §8.
 from __future__ import annotations
 
 import collections
+import contextlib
 import copy
+import errno
 import math
 import os
 import pickle
@@ -544,9 +546,10 @@ CHECKPOINT_FORMAT = "cascade_sac/1"
 
 
 def save_checkpoint(path: str, payload: dict) -> None:
-    """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then)."""
+    """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then).
+    A failed write (a full disk, most often) removes the temp file and stops the run in one line."""
     tmp = f"{path}.tmp"
-    with open(tmp, "wb") as f:
+    with write_failures(path, tmp), open(tmp, "wb") as f:
         torch.save(payload, f)
         f.flush()
         os.fsync(f.fileno())
@@ -556,11 +559,39 @@ def save_checkpoint(path: str, payload: dict) -> None:
 def atomic_copy(source: str, path: str) -> None:
     """Copy `source` to `path` as `save_checkpoint` writes: temp file, fsync, rename."""
     tmp = f"{path}.tmp"
-    with open(source, "rb") as src, open(tmp, "wb") as dst:
+    with write_failures(path, tmp), open(source, "rb") as src, open(tmp, "wb") as dst:
         shutil.copyfileobj(src, dst)
         dst.flush()
         os.fsync(dst.fileno())
     os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def write_failures(path: str, tmp: str):
+    """Turn a failed write of `tmp` into one line naming the cause, after removing `tmp` (a full disk would stay
+    full otherwise); the file at `path` is untouched. torch.save reports a full disk as a RuntimeError."""
+    try:
+        yield
+    except (OSError, RuntimeError) as exc:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        folder = os.path.dirname(os.path.abspath(path))
+        full = getattr(exc, "errno", None) == errno.ENOSPC or shutil.disk_usage(folder).free < 1 << 20
+        previous = f"the previous {os.path.basename(path)} is intact" if os.path.exists(path) else \
+            f"no earlier {os.path.basename(path)} exists"
+        if full:
+            fail(f"no space left on {folder}; {previous}; free some space and continue with --resume {folder}")
+        fail(f"cannot write {tmp} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); {previous}; "
+             f"fix that and continue with --resume {folder}")
+
+
+def non_finite_advice(checkpoint_path: str) -> str:
+    """What the non-finite guard's line says about the checkpoint it kept, and what to change."""
+    remedy = "start a new run with a lower --policy-lr / --q-lr (or another --seed)"
+    if not os.path.exists(checkpoint_path):
+        return f"no checkpoint was written yet; {remedy}"
+    return (f"the last good checkpoint {checkpoint_path} is intact, but resuming it repeats the same updates exactly "
+            f"and diverges again; {remedy}")
 
 
 def load_checkpoint(path: str) -> dict:
@@ -915,7 +946,7 @@ def train(args: Args, checkpoint: dict | None = None,
                     ):
                         writer.close()
                         fail(f"non-finite loss or parameters at global_step={global_step} (iteration {iteration}); "
-                             f"the last good checkpoint {checkpoint_path} is intact")
+                             f"{non_finite_advice(checkpoint_path)}")
 
             if global_step % 100 == 0:
                 sps = global_step / (time.time() - start_time)
@@ -930,7 +961,7 @@ def train(args: Args, checkpoint: dict | None = None,
         if not all(torch.isfinite(p).all() for p in [*actor.parameters(), *qf.parameters()]):
             writer.close()
             fail(f"non-finite parameters at global_step={global_step} (iteration {iteration}); "
-                 f"the last good checkpoint {checkpoint_path} is intact")
+                 f"{non_finite_advice(checkpoint_path)}")
         save_checkpoint(checkpoint_path, make_checkpoint(iteration))
         atomic_copy(checkpoint_path, os.path.join(run_dir, f"iteration_{iteration}.pt"))
         progress.message(f"iteration {iteration} done: global_step={global_step}, "

@@ -16,11 +16,14 @@ by itself, with a one-line warning); section 3, plumbing.
 from __future__ import annotations
 
 import collections
+import contextlib
 import copy
+import errno
 import math
 import os
 import pickle
 import random
+import shutil
 import sys
 import tempfile
 import time
@@ -889,7 +892,7 @@ class RunLog:
     def stop_non_finite(self, global_step: int, update: int) -> None:
         self.writer.close()
         fail(f"non-finite loss or parameters at global_step={global_step} (update {update}); "
-             f"the last good checkpoint {self.checkpoint_path} is intact")
+             f"{non_finite_advice(self.checkpoint_path)}")
 
     # --- evaluation (SPEC §6) ---
     def evaluate(self, step: int, actor: Actor) -> None:
@@ -1096,13 +1099,52 @@ CHECKPOINT_NAME = "checkpoint.pt"
 
 
 def save_checkpoint(path: str, payload: dict) -> None:
-    """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then)."""
+    """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then).
+    A failed write (a full disk, most often) removes the temp file and stops the run in one line."""
     tmp = f"{path}.tmp"
-    with open(tmp, "wb") as f:
+    with write_failures(path, tmp), open(tmp, "wb") as f:
         torch.save(payload, f)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def atomic_copy(source: str, path: str) -> None:
+    """Copy `source` to `path` as `save_checkpoint` writes: temp file, fsync, rename."""
+    tmp = f"{path}.tmp"
+    with write_failures(path, tmp), open(source, "rb") as src, open(tmp, "wb") as dst:
+        shutil.copyfileobj(src, dst)
+        dst.flush()
+        os.fsync(dst.fileno())
+    os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def write_failures(path: str, tmp: str):
+    """Turn a failed write of `tmp` into one line naming the cause, after removing `tmp` (a full disk would stay
+    full otherwise); the file at `path` is untouched. torch.save reports a full disk as a RuntimeError."""
+    try:
+        yield
+    except (OSError, RuntimeError) as exc:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        folder = os.path.dirname(os.path.abspath(path))
+        full = getattr(exc, "errno", None) == errno.ENOSPC or shutil.disk_usage(folder).free < 1 << 20
+        previous = f"the previous {os.path.basename(path)} is intact" if os.path.exists(path) else \
+            f"no earlier {os.path.basename(path)} exists"
+        if full:
+            fail(f"no space left on {folder}; {previous}; free some space and continue with --resume {folder}")
+        fail(f"cannot write {tmp} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); {previous}; "
+             f"fix that and continue with --resume {folder}")
+
+
+def non_finite_advice(checkpoint_path: str) -> str:
+    """What the non-finite guard's line says about the checkpoint it kept, and what to change."""
+    remedy = "start a new run with a lower --learning-rate (or another --seed)"
+    if not os.path.exists(checkpoint_path):
+        return f"no checkpoint was written yet; {remedy}"
+    return (f"the last good checkpoint {checkpoint_path} is intact, but resuming it repeats the same updates exactly "
+            f"and diverges again; {remedy}")
 
 
 def load_checkpoint(path: str) -> dict:

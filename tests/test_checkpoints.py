@@ -218,3 +218,43 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
     for extra, message in [(["--resume", full["run_dir"], "--hidden-size", "16"], "--hidden-size 16 differs"),
                            (["--evaluate", str(tmp_path / "missing")], "no checkpoint at")]:
         assert message in error_line(run_script("ppo_baseline.py", *extra)), extra
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A real 2.6 MB tmpfs (room for about two checkpoints of a tiny run), where the machine lets us mount one."""
+    import subprocess
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2600k", "tmpfs", str(disk)], capture_output=True,
+                             text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({mounted.stderr.strip() or 'mount failed'}); needs root")
+    yield disk
+    subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+def test_full_disk_is_one_line_and_keeps_the_last_checkpoint(small_disk):
+    proc = run_script("cascade_ppo_continuous.py", "--env-id", "Hopper-v4", "--n", "2", "--k", "1024", "--num-steps",
+                      "256", "--num-minibatches", "4", "--update-epochs", "1", "--eval-every", "0",
+                      "--checkpoint-every", "256", "--quiet", "--track-dir", small_disk)
+    line = error_line(proc)
+    assert line.startswith("error: no space left on") and "--resume" in line, line
+    (run_dir,) = [small_disk / d for d in os.listdir(small_disk)]
+    assert not [f for f in os.listdir(run_dir) if f.endswith(".tmp")]  # the partial file is gone
+    assert cpc.load_checkpoint(str(run_dir))["global_step"] >= 256  # the last complete checkpoint loads
+
+
+@pytest.mark.parametrize("poisoned_iteration,expected", [(1, "no checkpoint was written yet"),
+                                                         (2, "resuming it repeats the same updates exactly")])
+def test_nan_guard_says_what_it_kept_and_what_to_change(poisoned_iteration, expected, tmp_path):
+    def poison(state):
+        if state["iteration"] == poisoned_iteration:
+            with torch.no_grad():
+                state["critic"].weights[0][0, 0] = float("nan")
+
+    with pytest.raises(SystemExit) as stop:
+        cpc.train(cpc.Args(track_dir=str(tmp_path), checkpoint_every=0, **BASE), on_iteration_start=poison)
+    message = str(stop.value)
+    assert expected in message and "lower --learning-rate" in message and "\n" not in message, message
