@@ -28,11 +28,14 @@ import contextlib
 import copy
 import errno
 import functools
+import glob
 import math
+import multiprocessing
 import os
 import pickle
 import random
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -51,6 +54,8 @@ from torch.distributions import Normal
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
+# A stopped run (Ctrl-C, SIGTERM) closes its --num-envs workers mid-step; that is expected, not worth a warning.
+warnings.filterwarnings("ignore", message=".*Calling `close` while waiting for a pending call.*")
 
 
 @dataclass
@@ -973,6 +978,9 @@ def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0) -> Call
     """CleanRL's wrapper stack, per env: raw episode stats, action clip, obs/reward normalization."""
 
     def thunk() -> gym.Env:
+        if multiprocessing.current_process().name != "MainProcess":  # a --num-envs worker: stops are for training
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the training process's handler it was forked with
         env = gym.make(env_id)
         env = gym.wrappers.RecordEpisodeStatistics(env)  # raw, unnormalized returns
         env = gym.wrappers.ClipAction(env)
@@ -1325,16 +1333,20 @@ def policy_of(actor: CascadeActor, kind: int) -> Callable:
 
 def evaluation_worker(conn, args_dict: dict, obs_dim: int, act_dim: int) -> None:
     """Worker process: rebuilds the frozen policy of each request and evaluates it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle
     torch.set_num_threads(1)
     args = Args(**args_dict)
     evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed)
-    while (request := conn.recv()) is not None:
-        step, call, kind, size, state, stats = request
-        actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init)
-        for _ in range(size):
-            actor.add_base_net()
-        actor.load_state_dict(state)
-        conn.send((step, kind, *evaluator(policy_of(actor, kind), stats, call)))
+    try:
+        while (request := conn.recv()) is not None:
+            step, call, kind, size, state, stats = request
+            actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init)
+            for _ in range(size):
+                actor.add_base_net()
+            actor.load_state_dict(state)
+            conn.send((step, kind, *evaluator(policy_of(actor, kind), stats, call)))
+    except (EOFError, ConnectionError):  # the training process stopped: so do we, quietly
+        return
 
 
 class EvaluationRunner:
@@ -1471,6 +1483,10 @@ def write_failures(path: str, tmp: str):
             fail(f"no space left on {folder}; {previous}; free some space and continue with --resume {folder}")
         fail(f"cannot write {tmp} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); {previous}; "
              f"fix that and continue with --resume {folder}")
+    except BaseException:  # stopped mid-write (Ctrl-C, SIGTERM): no partial file is left behind either
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
 
 
 def non_finite_advice(checkpoint_path: str) -> str:
@@ -1693,6 +1709,34 @@ def evaluate_saved(args: Args) -> dict:
     return result
 
 
+def stop_signal(signum, frame) -> None:
+    """SIGTERM stops a run as Ctrl-C does (the exit code tells them apart)."""
+    STOPPED_BY.append(signum)
+    raise KeyboardInterrupt
+
+
+STOPPED_BY: list[int] = []
+
+
+def stopped(args: Args, checkpoint: dict | None, started: float) -> None:
+    """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM)."""
+    if checkpoint is not None:
+        run_dir = os.path.dirname(checkpoint["path"])
+    else:  # this run's folder: the newest of its name, made since it started
+        pattern = os.path.join(glob.escape(args.track_dir), f"{glob.escape(args.env_id)}__{glob.escape(args.exp_name)}__{args.seed}__*")
+        mine = [d for d in glob.glob(pattern) if int(d.rsplit("__", 1)[1]) >= int(started)]
+        run_dir = max(mine, key=os.path.getmtime) if mine else None
+    signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
+    name = signal.Signals(signum).name
+    script = os.path.basename(sys.argv[0])
+    if run_dir is not None and os.path.exists(os.path.join(run_dir, CHECKPOINT_NAME)):
+        where = f"the last checkpoint is {os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}"
+    else:
+        where = "no checkpoint was written yet, so there is nothing to resume"
+    print(f"\rstopped by {name}: {where}", file=sys.stderr, flush=True)
+    sys.exit(128 + signum)
+
+
 def main() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
     if args.evaluate:
@@ -1702,7 +1746,12 @@ def main() -> None:
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
         args = resumed_args(args, checkpoint, explicit_fields(sys.argv[1:]))
-    train(args, checkpoint)
+    signal.signal(signal.SIGTERM, stop_signal)
+    started = time.time()
+    try:
+        train(args, checkpoint)
+    except KeyboardInterrupt:
+        stopped(args, checkpoint, started)
 
 
 if __name__ == "__main__":

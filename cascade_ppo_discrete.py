@@ -23,11 +23,13 @@ import collections
 import contextlib
 import copy
 import errno
+import glob
 import math
 import os
 import pickle
 import random
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -529,6 +531,10 @@ def write_failures(path: str, tmp: str):
             fail(f"no space left on {folder}; {previous}; free some space and continue with --resume {folder}")
         fail(f"cannot write {tmp} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); {previous}; "
              f"fix that and continue with --resume {folder}")
+    except BaseException:  # stopped mid-write (Ctrl-C, SIGTERM): no partial file is left behind either
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
 
 
 def non_finite_advice(checkpoint_path: str) -> str:
@@ -1004,6 +1010,34 @@ def evaluate_saved(args: Args) -> np.ndarray:
     return returns
 
 
+def stop_signal(signum, frame) -> None:
+    """SIGTERM stops a run as Ctrl-C does (the exit code tells them apart)."""
+    STOPPED_BY.append(signum)
+    raise KeyboardInterrupt
+
+
+STOPPED_BY: list[int] = []
+
+
+def stopped(args: Args, checkpoint: dict | None, started: float) -> None:
+    """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM)."""
+    if checkpoint is not None:
+        run_dir = os.path.dirname(checkpoint["path"])
+    else:  # this run's folder: the newest of its name, made since it started
+        pattern = os.path.join(glob.escape(args.track_dir), f"{glob.escape(args.env_id)}__{glob.escape(args.exp_name)}__{args.seed}__*")
+        mine = [d for d in glob.glob(pattern) if int(d.rsplit("__", 1)[1]) >= int(started)]
+        run_dir = max(mine, key=os.path.getmtime) if mine else None
+    signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
+    name = signal.Signals(signum).name
+    script = os.path.basename(sys.argv[0])
+    if run_dir is not None and os.path.exists(os.path.join(run_dir, CHECKPOINT_NAME)):
+        where = f"the last checkpoint is {os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}"
+    else:
+        where = "no checkpoint was written yet, so there is nothing to resume"
+    print(f"\rstopped by {name}: {where}", file=sys.stderr, flush=True)
+    sys.exit(128 + signum)
+
+
 def main() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
     if args.evaluate:
@@ -1013,7 +1047,12 @@ def main() -> None:
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
         args = resumed_args(args, checkpoint, explicit_fields(sys.argv[1:]))
-    train(args, checkpoint)
+    signal.signal(signal.SIGTERM, stop_signal)
+    started = time.time()
+    try:
+        train(args, checkpoint)
+    except KeyboardInterrupt:
+        stopped(args, checkpoint, started)
 
 
 if __name__ == "__main__":

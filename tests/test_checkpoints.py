@@ -3,6 +3,7 @@
 import hashlib
 import os
 import shutil
+import signal
 
 import gymnasium as gym
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 import torch
 
 import cascade_ppo_continuous as cpc
-from helpers import copy_checkpoint_when, error_line, read_scalars, resume_from, run_script
+from helpers import ROOT, copy_checkpoint_when, error_line, read_scalars, resume_from, run_script
 
 BASE = dict(env_id="Hopper-v4", n=2, k=1024, num_steps=256, num_minibatches=4, update_epochs=2,
             eval_every=512, eval_episodes=2, quiet=True)
@@ -258,3 +259,36 @@ def test_nan_guard_says_what_it_kept_and_what_to_change(poisoned_iteration, expe
         cpc.train(cpc.Args(track_dir=str(tmp_path), checkpoint_every=0, **BASE), on_iteration_start=poison)
     message = str(stop.value)
     assert expected in message and "lower --learning-rate" in message and "\n" not in message, message
+
+
+@pytest.mark.parametrize("script,extra,signum", [
+    ("cascade_ppo_continuous.py", ["--n", "2", "--k", "65536", "--num-envs", "2"], signal.SIGINT),
+    ("cascade_ppo_continuous.py", ["--n", "2", "--k", "65536", "--num-envs", "2"], signal.SIGTERM),
+    ("ppo_baseline.py", ["--total-timesteps", "131072"], signal.SIGTERM),
+    ("cascade_ppo_discrete.py", ["--n", "2", "--k", "65536"], signal.SIGINT),
+    ("cascade_sac.py", ["--n", "2", "--k", "3000", "--learning-starts", "500", "--batch-size", "64"], signal.SIGTERM),
+], ids=["cascade-int", "cascade-term", "ppo-term", "discrete-int", "sac-term"])
+def test_stopping_a_run_is_one_line(script, extra, signum, tmp_path):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) or SIGTERM: one line on where the
+    last checkpoint is and how to resume, exit 130 / 143, no traceback from any process."""
+    import subprocess
+    import sys
+    import time
+
+    env_id = "CartPole-v1" if "discrete" in script else "Pendulum-v1" if "sac" in script else "Hopper-v4"
+    flags = ["--env-id", env_id, *extra, "--eval-every", "1000", "--eval-episodes", "2", "--track-dir", str(tmp_path)]
+    if "sac" not in script:
+        flags += ["--checkpoint-every", "2048"]
+    proc = subprocess.Popen([sys.executable, os.path.join(ROOT, script), *flags], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not any(
+            os.path.exists(os.path.join(tmp_path, d, "checkpoint.pt")) for d in os.listdir(tmp_path)):
+        time.sleep(0.2)
+    time.sleep(0.5)
+    os.killpg(proc.pid, signum) if signum == signal.SIGINT else proc.send_signal(signum)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signum, err[-3000:]
+    lines = [line.strip("\r") for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"stopped by {signal.Signals(signum).name}"), err[-3000:]
+    assert "--resume" in lines[0] and "Traceback" not in out + err
