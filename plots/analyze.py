@@ -106,6 +106,8 @@ class Table2:
     """experiment names (`--exp-name` of the runs), in this order (default: all found)"""
     labels: tuple[str, ...] = ()
     """display names as EXP=LABEL (defaults: cascade_ppo_continuous=Cascade, ppo_baseline=PPO)"""
+    allow_incomplete: bool = False
+    """keep runs that stop before the others of their env and experiment in the final numbers (noted either way)"""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -352,7 +354,8 @@ def fmt_duration(seconds: float) -> str:
 
 
 def table2(args: Table2) -> list[str]:
-    selection = common.select_runs(args.runs, args.envs, args.experiments, labels=args.labels)
+    selection = common.select_runs(args.runs, args.envs, args.experiments, labels=args.labels,
+                                   complete_only=not args.allow_incomplete)
     everything = [r for runs in selection.groups.values() for r in runs]
     if all(run_parameters(r) is None for r in everything):
         logged = sorted({t for r in everything for t in r.scalars})

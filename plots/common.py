@@ -251,6 +251,7 @@ def select_runs(
     split_by: Sequence[str] = (),
     labels: Sequence[str] = (),
     tags: Sequence[str] = (),
+    complete_only: bool = False,
 ) -> Selection:
     """Read the runs of `experiments` on `envs` (empty: all found) that log every one of `tags`.
 
@@ -273,6 +274,12 @@ def select_runs(
                  f"{short_list(envs) if envs else '(any)'}"
         fail(f"no runs of {wanted} under {where} (found: {listed})")
     runs = [read_run(d) for d in chosen]
+    damaged = [r for r in runs if not any(len(series.steps) for series in r.scalars.values())]
+    for r in damaged:
+        note(f"left out {r.path}: it holds no scalars (an empty or damaged event file)")
+    runs = [r for r in runs if r not in damaged]
+    if not runs:
+        fail(f"every run found under {where} is empty or damaged")
 
     for tag in tags:
         missing = [r for r in runs if tag not in r.scalars]
@@ -296,6 +303,8 @@ def select_runs(
     for key, members in groups.items():
         groups[key] = drop_duplicate_seeds(sorted(members, key=lambda r: (r.seed, r.timestamp)))
         warn_if_settings_differ(key, groups[key], split_by)
+        groups[key] = check_complete(key, groups[key], complete_only)
+    groups = {key: members for key, members in groups.items() if members}
 
     env_order = [e for e in envs if any(k[0] == e for k in groups)] or sorted({k[0] for k in groups})
     # default order (and so colours): Cascade, PPO, then the rest alphabetically
@@ -307,6 +316,19 @@ def select_runs(
                                               if k[1] == lab for r in rs), lab))
     ordered = {(e, lab): groups[(e, lab)] for e in env_order for lab in label_order if (e, lab) in groups}
     return Selection(ordered, env_order, label_order)
+
+
+def check_complete(key: tuple[str, str], runs: list[Run], complete_only: bool) -> list[Run]:
+    """Name every run that stops before the others of its (env, experiment), with the step it stops at (an
+    unfinished run, or a damaged event file); with `complete_only` (final scores) leave it out."""
+    last = max(r.last_step() for r in runs)
+    for r in runs:
+        if r.last_step() < last:
+            what = "left out of the final scores" if complete_only else "kept (its curve ends early)"
+            hint = " (--allow-incomplete keeps it)" if complete_only else ""
+            note(f"{r.path} stops at step {r.last_step():,} while other runs of {key[0]}/{key[1]} reach "
+                 f"{last:,} (unfinished or a damaged event file): {what}{hint}")
+    return [r for r in runs if r.last_step() == last] if complete_only else runs
 
 
 def drop_duplicate_seeds(runs: list[Run]) -> list[Run]:

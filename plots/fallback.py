@@ -55,6 +55,8 @@ class Args:
     """Table 1 and 3 use the mean of a run's last this many logged values"""
     columns: int = 3
     """panels per row"""
+    allow_incomplete: bool = False
+    """keep runs that stop before the others of their env and experiment in the final numbers (noted either way)"""
 
 
 def final_value(runs: list[common.Run], tag: str, window: int) -> tuple[float, float | None, int] | None:
@@ -87,7 +89,8 @@ def net_markers(ax, runs: list[common.Run]) -> None:
 def main(args: Args) -> list[str]:
     if args.final_window < 1:
         common.fail("--final-window must be at least 1")
-    selection = common.select_runs(args.runs, args.envs, args.experiments, args.split_by, args.labels, [PRODUCT])
+    selection = common.select_runs(args.runs, args.envs, args.experiments, args.split_by, args.labels, [PRODUCT],
+                                   complete_only=not args.allow_incomplete)
     plt = common.pyplot()
     paths = []
 

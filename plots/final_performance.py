@@ -68,6 +68,8 @@ class Args:
     """confidence level of the intervals"""
     seed: int = 0
     """seed of the bootstrap's random generator"""
+    allow_incomplete: bool = False
+    """keep runs that stop before the others of their env and experiment in the final numbers (noted either way)"""
 
 
 def iqm(scores: np.ndarray) -> np.ndarray:
@@ -121,7 +123,8 @@ def find_baseline(selection: common.Selection, baseline: str) -> str | None:
 def main(args: Args) -> list[str]:
     if args.final_window < 1 or args.reps < 1 or not 0 < args.confidence < 1:
         common.fail("--final-window and --reps must be at least 1 and --confidence within (0, 1)")
-    selection = common.select_runs(args.runs, args.envs, args.experiments, args.split_by, args.labels, [args.scalar])
+    selection = common.select_runs(args.runs, args.envs, args.experiments, args.split_by, args.labels, [args.scalar],
+                                   complete_only=not args.allow_incomplete)
     rng = np.random.default_rng(args.seed)
     scores = {key: run_scores(runs, args.scalar, args.final_window) for key, runs in selection.groups.items()}
     base = find_baseline(selection, args.baseline)

@@ -45,6 +45,8 @@ class Args:
     """a run's final score: the mean of its last this many evaluations"""
     reps: int = 2000
     """bootstrap replicates of the confidence intervals"""
+    allow_incomplete: bool = False
+    """keep runs that stop before the others of their env and experiment in the final numbers (noted either way)"""
 
 
 def final_scores(runs: list[common.Run], window: int) -> np.ndarray:
@@ -54,7 +56,7 @@ def final_scores(runs: list[common.Run], window: int) -> np.ndarray:
 def summary(args: Args) -> str:
     """The reproduction next to the paper's numbers, per env."""
     selection = common.select_runs((args.runs,), [e for e in ENV_ORDER if e in envs_present(args.runs)],
-                                   ("cascade", "ppo"), labels=LABELS)
+                                   ("cascade", "ppo"), labels=LABELS, complete_only=not args.allow_incomplete)
     lines = ["# Reproduction of the paper's Fig. 2 (our runs, results/runs)", "",
              f"Score of a run: mean evaluation return over its last {args.final_window} evaluations (every 50k steps, "
              "10 stochastic episodes each). Mean ± standard error over seeds; P(Cascade > PPO) is the share of "
@@ -127,11 +129,13 @@ def main(args: Args) -> list[str]:
                                                       envs=envs, labels=LABELS))
     paths += final_performance.main(final_performance.Args(runs=runs, out=args.out, envs=envs, labels=LABELS,
                                                            baseline="ppo", final_window=args.final_window,
-                                                           reps=args.reps))
+                                                           reps=args.reps, allow_incomplete=args.allow_incomplete))
     paths += fallback.main(fallback.Args(runs=runs, out=args.out, envs=envs, experiments=("cascade",),
-                                         labels=LABELS, final_window=args.final_window))
+                                         labels=LABELS, final_window=args.final_window,
+                                         allow_incomplete=args.allow_incomplete))
     paths += members.main(members.Args(runs=runs, out=args.out, envs=envs, experiments=("cascade",), labels=LABELS))
-    paths += analyze.table2(analyze.Table2(runs=runs, out=args.out, name="runtime", envs=envs, labels=LABELS))
+    paths += analyze.table2(analyze.Table2(runs=runs, out=args.out, name="runtime", envs=envs, labels=LABELS,
+                                           allow_incomplete=args.allow_incomplete))
     paths.append(common.write_text(args.out, "summary.md", summary(args)))
     return paths
 

@@ -337,3 +337,36 @@ def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
     summary = open(tmp_path / "summary.md").read()
     row = next(line for line in summary.splitlines() if line.startswith("| Hopper-v4 |"))
     assert f"{np.mean(scores['cascade']):.0f} ± " in row and f"{np.mean(scores['ppo']):.0f} ± " in row, row
+
+
+def write_fake_run(root, name, steps, value=1.0):
+    """A run folder with `eval/episodic_return` logged at `steps` (TensorBoard's own writer)."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(os.path.join(root, name))
+    for step in steps:
+        writer.add_scalar("eval/episodic_return", value, step)
+    writer.close()
+    return os.path.join(root, name)
+
+
+def test_damaged_and_truncated_runs_are_named_and_kept_out_of_final_scores(tmp_path, capsys):
+    from plots import final_performance
+
+    root = tmp_path / "runs"
+    for seed, value in ((1, 100.0), (2, 200.0)):
+        write_fake_run(root, f"Hopper-v4__ppo_baseline__{seed}__1700000000", [0, 4096, 8192], value)
+    truncated = write_fake_run(root, "Hopper-v4__ppo_baseline__3__1700000000", [0, 2048], 5000.0)
+    damaged = root / "Hopper-v4__ppo_baseline__4__1700000000"
+    damaged.mkdir()
+    (damaged / "events.out.tfevents.1700000000.host.1.0").write_bytes(b"\x00garbage, not a record")
+    args = dict(runs=(str(root),), out=str(tmp_path / "out"), baseline="ppo_baseline", reps=50)
+    final_performance.main(final_performance.Args(**args))
+    err = capsys.readouterr().err
+    assert str(damaged) in err and "no scalars" in err, err
+    assert truncated in err and "stops at step 2,048" in err and "left out of the final scores" in err, err
+    rows = read_csv(tmp_path / "out" / "final_performance.csv")
+    assert [int(r["seeds"]) for r in rows if r["env"] == "Hopper-v4"] == [2], rows
+    final_performance.main(final_performance.Args(**args, allow_incomplete=True))
+    rows = read_csv(tmp_path / "out" / "final_performance.csv")
+    assert [int(r["seeds"]) for r in rows if r["env"] == "Hopper-v4"] == [3], rows
