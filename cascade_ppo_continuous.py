@@ -40,6 +40,7 @@ import sys
 import tempfile
 import time
 import warnings
+import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Literal
@@ -468,6 +469,7 @@ def train(args: Args, checkpoint: dict | None = None,
         actor, global_step, next_obs, next_done, start_iteration, start_update = run.restore(
             checkpoint, updates_per_iteration, device)
 
+    critic = None  # each iteration makes its own (a resumed run that had finished has none left to make)
     for iteration in range(start_iteration, args.n + 1):
         if checkpoint is not None and iteration == start_iteration and start_update > 1:
             critic, params, optimizer = run.restore_mid_iteration(checkpoint, actor, device)
@@ -1094,6 +1096,8 @@ class RunLog:
             )
         else:
             self.run_dir = os.path.dirname(checkpoint["path"])
+            updates = args.k // (args.num_envs * args.num_steps)
+            repair_iteration_files(self.run_dir, checkpoint, at_iteration_end=checkpoint["updates_done"] == updates)
             # purge_step hides whatever the killed run logged after its last checkpoint
             self.writer = SummaryWriter(self.run_dir, purge_step=checkpoint["global_step"] + 1)
         self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT_NAME)
@@ -1496,6 +1500,25 @@ def non_finite_advice(checkpoint_path: str) -> str:
         return f"no checkpoint was written yet; {remedy}"
     return (f"the last good checkpoint {checkpoint_path} is intact, but resuming it repeats the same updates exactly "
             f"and diverges again; {remedy}")
+
+
+def repair_iteration_files(run_dir: str, checkpoint: dict, at_iteration_end: bool) -> None:
+    """On resume: every finished iteration's iteration_<i>.pt should be there and readable (plots/analyze.py reads
+    them). One that a kill left missing or truncated is rebuilt from the checkpoint when that holds the same state
+    (the end of that iteration); otherwise the run says in one line that it cannot be rebuilt."""
+    for stale in glob.glob(os.path.join(glob.escape(run_dir), "*.pt.tmp")):
+        os.remove(stale)  # a write the kill interrupted
+    finished = checkpoint["iteration"] if at_iteration_end else checkpoint["iteration"] - 1
+    for i in range(1, finished + 1):
+        path = os.path.join(run_dir, f"iteration_{i}.pt")
+        if os.path.isfile(path) and zipfile.is_zipfile(path):  # torch.save writes a zip archive: truncated ones fail
+            continue
+        if i == checkpoint["iteration"] and at_iteration_end:
+            atomic_copy(checkpoint["path"], path)
+            print(f"note: rebuilt {path} from {checkpoint['path']} (the same state: the end of iteration {i})")
+        else:
+            print(f"note: {path} is missing or damaged and cannot be rebuilt (the run has moved past iteration {i}); "
+                  "analyses of that iteration (plots/analyze.py) are unavailable for this run", file=sys.stderr)
 
 
 def load_checkpoint(path: str) -> dict:

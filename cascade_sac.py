@@ -38,6 +38,7 @@ import sys
 import tempfile
 import time
 import warnings
+import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
@@ -600,6 +601,25 @@ def non_finite_advice(checkpoint_path: str) -> str:
             f"and diverges again; {remedy}")
 
 
+def repair_iteration_files(run_dir: str, checkpoint: dict, at_iteration_end: bool) -> None:
+    """On resume: every finished iteration's iteration_<i>.pt should be there and readable (plots/analyze.py reads
+    them). One that a kill left missing or truncated is rebuilt from the checkpoint when that holds the same state
+    (the end of that iteration); otherwise the run says in one line that it cannot be rebuilt."""
+    for stale in glob.glob(os.path.join(glob.escape(run_dir), "*.pt.tmp")):
+        os.remove(stale)  # a write the kill interrupted
+    finished = checkpoint["iteration"] if at_iteration_end else checkpoint["iteration"] - 1
+    for i in range(1, finished + 1):
+        path = os.path.join(run_dir, f"iteration_{i}.pt")
+        if os.path.isfile(path) and zipfile.is_zipfile(path):  # torch.save writes a zip archive: truncated ones fail
+            continue
+        if i == checkpoint["iteration"] and at_iteration_end:
+            atomic_copy(checkpoint["path"], path)
+            print(f"note: rebuilt {path} from {checkpoint['path']} (the same state: the end of iteration {i})")
+        else:
+            print(f"note: {path} is missing or damaged and cannot be rebuilt (the run has moved past iteration {i}); "
+                  "analyses of that iteration (plots/analyze.py) are unavailable for this run", file=sys.stderr)
+
+
 def load_checkpoint(path: str) -> dict:
     """Load `runs/<run>` (its latest checkpoint) or a checkpoint file; one-line error if missing or corrupt."""
     if os.path.isdir(path):
@@ -770,6 +790,7 @@ def train(args: Args, checkpoint: dict | None = None,
         )
     else:
         run_dir = os.path.dirname(checkpoint["path"])
+        repair_iteration_files(run_dir, checkpoint, at_iteration_end=True)
         # purge_step hides whatever the killed run logged after its last checkpoint
         writer = SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1)
     checkpoint_path = os.path.join(run_dir, CHECKPOINT_NAME)

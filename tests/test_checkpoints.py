@@ -292,3 +292,20 @@ def test_stopping_a_run_is_one_line(script, extra, signum, tmp_path):
     lines = [line.strip("\r") for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith(f"stopped by {signal.Signals(signum).name}"), err[-3000:]
     assert "--resume" in lines[0] and "Traceback" not in out + err
+
+
+def test_resume_rebuilds_an_iteration_file_a_kill_left_truncated(finished_run, tmp_path):
+    """A kill during the (old, non-atomic) copy left iteration_<i>.pt truncated or missing; resuming rebuilds the
+    one the checkpoint holds the state of and names the one it cannot rebuild."""
+    run_copy = tmp_path / "run"
+    shutil.copytree(finished_run["run_dir"], run_copy)
+    for name in ("iteration_1.pt", "iteration_2.pt"):
+        data = (run_copy / name).read_bytes()
+        (run_copy / name).write_bytes(data[:100])  # truncated mid-copy
+    (run_copy / "iteration_2.pt.tmp").write_bytes(b"partial")
+    proc = run_script("cascade_ppo_continuous.py", "--resume", run_copy)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (run_copy / "iteration_2.pt").read_bytes() == (run_copy / "checkpoint.pt").read_bytes()
+    assert cpc.load_checkpoint(str(run_copy / "iteration_2.pt"))["iteration"] == 2
+    assert not (run_copy / "iteration_2.pt.tmp").exists()
+    assert "iteration_1.pt is missing or damaged and cannot be rebuilt" in proc.stderr, proc.stderr
