@@ -309,3 +309,37 @@ def test_resume_rebuilds_an_iteration_file_a_kill_left_truncated(finished_run, t
     assert cpc.load_checkpoint(str(run_copy / "iteration_2.pt"))["iteration"] == 2
     assert not (run_copy / "iteration_2.pt.tmp").exists()
     assert "iteration_1.pt is missing or damaged and cannot be rebuilt" in proc.stderr, proc.stderr
+
+
+def test_kill_9_during_the_iteration_copy_then_resume(tmp_path):
+    """A real SIGKILL in the middle of writing iteration_1.pt (the process kills itself half way through the
+    copy), then `--resume` as a user would: the iteration file is complete afterwards, no temp file is left."""
+    import subprocess
+    import sys
+
+    driver = tmp_path / "driver.py"
+    driver.write_text(f"""
+import os, shutil, signal, sys
+sys.path.insert(0, {ROOT!r})
+import cascade_ppo_continuous as cpc
+real = shutil.copyfileobj
+def copy_then_die(src, dst, *args, **kwargs):
+    dst.write(src.read(1000))
+    dst.flush()
+    os.kill(os.getpid(), signal.SIGKILL)
+cpc.shutil.copyfileobj = copy_then_die
+sys.argv = ["cascade_ppo_continuous.py", *sys.argv[1:]]
+cpc.main()
+""")
+    flags = ["--env-id", "Hopper-v4", "--n", "2", "--k", "1024", "--num-steps", "256", "--num-minibatches", "4",
+             "--update-epochs", "1", "--eval-every", "0", "--checkpoint-every", "0", "--quiet",
+             "--track-dir", str(tmp_path / "runs")]
+    killed = subprocess.run([sys.executable, str(driver), *flags], capture_output=True, text=True, timeout=300)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
+    (run_dir,) = [tmp_path / "runs" / d for d in os.listdir(tmp_path / "runs")]
+    assert not (run_dir / "iteration_1.pt").exists() and (run_dir / "iteration_1.pt.tmp").exists()
+    resumed = run_script("cascade_ppo_continuous.py", "--resume", run_dir)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert cpc.load_checkpoint(str(run_dir / "iteration_1.pt"))["iteration"] == 1
+    assert cpc.load_checkpoint(str(run_dir))["global_step"] == 2048
+    assert not [f for f in os.listdir(run_dir) if f.endswith(".tmp")]
