@@ -130,7 +130,7 @@ def has_event_files(folder: str) -> bool:
 
 def find_run_dirs(roots: Sequence[str]) -> list[str]:
     """Every folder under `roots` (at any depth) that is named like a run and holds event files, and every
-    exported run `<run_name>.json` (plots/export_results.py; the committed results/runs/)."""
+    exported run `<run_name>.json` (plots/export_results.py; the committed results/per_run/)."""
     found = []
     for root in roots:
         if not os.path.isdir(root):

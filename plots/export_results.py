@@ -1,4 +1,4 @@
-"""Export finished runs to small JSON files (`results/runs/<run_name>.json`) that the plots read like run folders.
+"""Export finished runs to small JSON files (`results/per_run/<run_name>.json`) that the plots read like run folders.
 
 A run folder holds megabytes of TensorBoard events and checkpoints; the committed results need only what
 the paper's figures and tables use. Per run, one JSON file with:
@@ -11,9 +11,9 @@ the paper's figures and tables use. Per run, one JSON file with:
   run was made by sweep.py), the code commit, and the training time from the final checkpoint.
 
 Only runs that reached their planned budget are exported (`--allow-incomplete` to override). Then every
-plot script accepts the folder: `python plots/learning_curves.py --runs results/runs`.
+plot script accepts the folder: `python plots/learning_curves.py --runs results/per_run`.
 
-    python plots/export_results.py --runs sweeps/reproduce/runs --out results/runs --commit d274905
+    python plots/export_results.py --runs sweeps/reproduce/runs --out results/per_run --commit d274905
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ SAMPLED_TAGS = ("cascade/fallback/", "cascade/contribution/", "cascade/fallback_
 class Args:
     runs: list[str] = field(default_factory=lambda: ["runs"])
     """folders searched (at any depth) for run folders"""
-    out: str = "results/runs"
+    out: str = "results/per_run"
     """folder the JSON files are written to (one per run, named like the run folder)"""
     commit: str | None = None
     """code commit the runs were made with (default: this repository's HEAD)"""

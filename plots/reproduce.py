@@ -1,6 +1,6 @@
 """Rebuild every figure and table of the paper reproduction from the committed per-run files alone.
 
-Reads `results/runs/*.json` (written by plots/export_results.py from finished runs of
+Reads `results/per_run/*.json` (written by plots/export_results.py from finished runs of
 `python sweep.py --preset reproduce`: standard Cascade, n=6, k=1M, against PPO for 6M steps, both
 evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
 
@@ -11,7 +11,7 @@ evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
 - `fallback_tables.md` (Tables 1 and 3), `members.*` (Section 4.2), `runtime.md` (Table 2's runtime);
 - `summary.md`: the tables above next to the paper's numbers.
 
-    python plots/reproduce.py                       # results/runs -> results/figures
+    python plots/reproduce.py                       # results/per_run -> results/figures
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ PAPER_VERDICT = {"HalfCheetah-v4": "Cascade better", "Ant-v4": "Cascade better",
 
 @dataclass
 class Args:
-    runs: str = "results/runs"
+    runs: str = "results/per_run"
     """folder of exported runs (JSON)"""
     out: str = "results/figures"
     """folder the figures and tables are written to"""
@@ -57,7 +57,7 @@ def summary(args: Args) -> str:
     """The reproduction next to the paper's numbers, per env."""
     selection = common.select_runs((args.runs,), [e for e in ENV_ORDER if e in envs_present(args.runs)],
                                    ("cascade", "ppo"), labels=LABELS, complete_only=not args.allow_incomplete)
-    lines = ["# Reproduction of the paper's Fig. 2 (our runs, results/runs)", "",
+    lines = ["# Reproduction of the paper's Fig. 2 (our runs, results/per_run)", "",
              f"Score of a run: mean evaluation return over its last {args.final_window} evaluations (every 50k steps, "
              "10 stochastic episodes each). Mean ± standard error over seeds; P(Cascade > PPO) is the share of "
              "(Cascade run, PPO run) pairs where Cascade scored higher.", ""]
