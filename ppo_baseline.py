@@ -1025,9 +1025,7 @@ class EvaluationRunner:
         self.calls, self.pending, self.done = calls, 0, []
         self.conn = self.process = self.evaluator = None
         if args.eval_in_worker:
-            import multiprocessing as mp
-
-            ctx = mp.get_context("spawn")  # fork is unsafe with torch threads
+            ctx = multiprocessing.get_context("spawn")  # fork is unsafe with torch threads
             self.conn, child = ctx.Pipe()
             self.process = ctx.Process(target=evaluation_worker, args=(child, asdict(args), obs_dim, act_dim),
                                        daemon=True)
