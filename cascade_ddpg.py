@@ -1,24 +1,28 @@
 """Cascade trained with DDPG on continuous-action tasks (single-file, CleanRL style; paper Appendix H.2).
-`--n 1 --k 6000000` (one 256-256 net, the default width) is exactly the paper's DDPG baseline (CleanRL
-ddpg_continuous_action with orthogonal init).
+The defaults follow the paper's own code (github codebro634/Cascade, SPEC.md §8b) where its text is silent;
+`--n 1 --k 6000000 --hidden-size 64` is exactly the paper's DDPG baseline (64-64 tanh actor and critic).
 
-The actor is a Cascade of base nets `obs -> 256 -> 256 -> tanh(mu)` (ReLU), each net's tanh output rescaled
-to the action bounds. Every `k` env steps a new base net b_i is stacked on the ensemble C_{i-1}; besides its
-action it emits a fallback weight lambda_i(x) in [0, 1] and the ensemble becomes
+The actor is a Cascade of base nets `obs -> 16 -> 16 -> mu` (tanh, the paper code's Cascade default). Every
+`k` env steps a new base net b_i is stacked on the ensemble C_{i-1}; besides its raw action mu_i it emits a
+fallback weight lambda_i(x) in [0, 1] and the ensemble becomes
 
-    C_i(x) = lambda_i(x) * C_{i-1}(x) + (1 - lambda_i(x)) * b_i(x)     (actions in the env's bounds)
+    C_i(x) = lambda_i(x) * C_{i-1}(x) + (1 - lambda_i(x)) * mu_i(x),   action = tanh(C_n(x)) scaled to the bounds
 
-The whole stack is trained end to end by DDPG. When a net is added the replay buffer is emptied (after which
-the current policy with exploration noise collects `--learning-starts` steps before updates resume; uniform
-random actions are used only at the very start of the run), the critic, its target and its optimizer are
-kept, the target actor keeps its nets and gets the new one with the online net's very init, and the actor
-optimizer is recreated over all actor nets. `--keep-buffer` and `--reset-critic` are the ablations. No
-observation/reward normalization. Paper: Schmöcker & Dockhorn, "Cascade - A sequential ensemble method for
-continuous control tasks", RLJ 2025; SPEC.md §8. The paper gives no base-net width for Cascade-DDPG, so the
-base nets keep CleanRL's 256-256.
+(combined before the squash, as the paper's code; `--no-combine-before-tanh` squashes each net first). The
+critic is `[obs, action] -> 64 -> 64 -> 1` (tanh). The whole stack is trained end to end by DDPG with the
+learning rate annealed linearly to 0 within each iteration. When a net is added, as in the paper's code (a
+new DDPG instance per net): the replay buffer is emptied, `--learning-starts` uniform-random steps without
+updates follow, the critic is kept but its target is re-copied from it, the target actor becomes a copy of
+the whole current cascade, and both optimizers are recreated (`--no-restart-on-new-net`: the paper's text
+read literally, critic target, critic optimizer and target actor kept). `--keep-buffer` and
+`--reset-critic` are the ablations. Evaluation keeps the exploration noise (the paper's code). No
+observation/reward normalization; raw observations and rewards are clipped to +-10 (the paper's code).
+Paper: Schmöcker & Dockhorn, "Cascade - A sequential ensemble method for continuous control tasks", RLJ 2025.
 
     python cascade_ddpg.py --env-id Hopper-v4                                    # Cascade: 6 nets, a new one every 1M steps
-    python cascade_ddpg.py --env-id Hopper-v4 --n 1 --k 6000000 --exp-name ddpg_baseline
+    python cascade_ddpg.py --env-id Hopper-v4 --n 1 --k 6000000 --hidden-size 64 --exp-name ddpg_baseline
+    python cascade_ddpg.py --env-id Hopper-v4 --hidden-size 256 --critic-hidden-size 256 --activation relu \
+        --no-anneal-lr --adam-eps 1e-8 --eval-deterministic --obs-reward-clip 0    # CleanRL's DDPG nets and settings
     tensorboard --logdir runs
 """
 
@@ -42,6 +46,7 @@ import warnings
 import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import Literal
 
 import gymnasium as gym
 import numpy as np
@@ -75,19 +80,27 @@ class Args:
 
     # Cascade
     n: int = 6
-    """number of base nets, i.e. iterations of Cascade (the run lasts n*k steps); `--n 1 --k 6000000` is exactly the DDPG baseline"""
+    """number of base nets, i.e. iterations of Cascade (the run lasts n*k steps); `--n 1 --k 6000000 --hidden-size 64` is exactly the paper's DDPG baseline"""
     k: int = 1_000_000
     """environment steps per iteration; a new base net is added every k steps (paper: 1M of 6M)"""
-    hidden_size: int = 256
-    """width of each hidden layer of a base net (CleanRL's DDPG actor: 256; the paper names no other width)"""
+    hidden_size: int = 16
+    """width of each hidden layer of a base net (the paper's code: 16 for Cascade, 64 for its DDPG baseline; CleanRL: 256)"""
     num_layers: int = 2
     """number of hidden layers of a base net"""
+    activation: Literal["tanh", "relu"] = "tanh"
+    """hidden activation of the base nets and the critic (the paper's code: tanh; CleanRL: relu)"""
+    critic_hidden_size: int = 64
+    """width of the critic's two hidden layers (the paper's code: 64; CleanRL: 256)"""
+    combine_before_tanh: bool = True
+    """combine the nets' raw outputs and squash once (the paper's code); `--no-combine-before-tanh`: squash each net, then combine"""
     fallback_init: float = 0.5
     """initial fallback weight lambda of each new base net, in (0, 1)"""
     keep_buffer: bool = False
     """ablation: keep the replay buffer when a base net is added (standard Cascade empties it)"""
     reset_critic: bool = False
     """ablation: fresh critic, target critic and critic optimizer when a base net is added (standard: kept)"""
+    restart_on_new_net: bool = True
+    """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critic re-copied, target actor = copy of the whole cascade, critic optimizer recreated; `--no-restart-on-new-net`: all kept, the current policy collects the warm-up (the paper's text)"""
 
     # DDPG (CleanRL ddpg_continuous_action defaults)
     buffer_size: int = 1_000_000
@@ -102,18 +115,24 @@ class Args:
     """transitions collected (since the buffer was last emptied) before updates start"""
     learning_rate: float = 3e-4
     """the learning rate of the actor and critic optimizers"""
+    anneal_lr: bool = True
+    """anneal the learning rate linearly to 0 within each iteration (the paper's code; for n=1 over the run)"""
+    adam_eps: float = 1e-5
+    """Adam's epsilon (the paper's code: 1e-5; CleanRL: 1e-8)"""
     exploration_noise: float = 0.1
     """std of the Gaussian exploration noise, as a fraction of the half action range"""
     policy_frequency: int = 2
     """delayed updates: the actor and both target nets are updated every this many steps"""
+    obs_reward_clip: float = 10.0
+    """clip raw observations and rewards to +-this, as the paper's code does in its unnormalized runs (0: no clipping, CleanRL)"""
 
     # Evaluation (SPEC §6)
     eval_every: int = 10_000
     """evaluate the frozen current policy every this many env steps (0 turns evaluation off)"""
     eval_episodes: int = 10
     """episodes per evaluation (on separate envs)"""
-    eval_deterministic: bool = True
-    """evaluate the actor without exploration noise (default); `--no-eval-deterministic` adds the training noise"""
+    eval_deterministic: bool = False
+    """evaluate without exploration noise; by default the training noise is kept, as the paper's code evaluates"""
     eval_members: bool = True
     """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`)"""
 
@@ -145,21 +164,25 @@ def check_env_id(env_id: str) -> None:
         fail(f"unknown env id '{env_id}'.{hint} (see gymnasium's registry, e.g. Hopper-v4, Ant-v5)")
 
 
-def make_env(env_id: str, index: int = 0) -> Callable[[], gym.Env]:
-    """CleanRL's DDPG env: raw episode statistics only (actions are clipped to the bounds before stepping)."""
+def make_env(env_id: str, clip: float, index: int = 0) -> Callable[[], gym.Env]:
+    """CleanRL's DDPG env (raw episode statistics; actions are clipped to the bounds before stepping), plus the
+    paper's code's clipping of raw observations and rewards to +-clip (0: none). Returns stay raw."""
 
     def thunk() -> gym.Env:
         env = gym.make(env_id)
         env = gym.wrappers.RecordEpisodeStatistics(env)
+        if clip:
+            env = gym.wrappers.TransformObservation(env, lambda obs: np.clip(obs, -clip, clip), env.observation_space)
+            env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -clip, clip))
         return RunState(env, index)
 
     return thunk
 
 
-def make_vector_env(env_id: str) -> gym.vector.SyncVectorEnv:
+def make_vector_env(env_id: str, clip: float) -> gym.vector.SyncVectorEnv:
     # SAME_STEP: on a done step the returned obs is already the reset one and infos["final_obs"] holds the
     # real last one (the default NEXT_STEP mode would insert a fake transition after each episode).
-    return gym.vector.SyncVectorEnv([make_env(env_id)], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    return gym.vector.SyncVectorEnv([make_env(env_id, clip)], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 
 
 # Plain-data attributes of an env and its wrappers: step counters, episode statistics, the env's RNG.
@@ -303,20 +326,25 @@ def contributions(fallback: torch.Tensor) -> torch.Tensor:
     return torch.cat([ones, torch.rsub(fallback, 1.0)]) * later
 
 
+ACTIVATIONS = {"tanh": torch.tanh, "relu": torch.relu}
+
+
 class CascadeActor(nn.Module):
-    """A stack of base nets `obs -> H -> ... -> H -> tanh(mu) (+ fallback logit)`, ReLU, evaluated together.
+    """A stack of base nets `obs -> H -> ... -> H -> mu (+ fallback logit)` (tanh or ReLU), evaluated together.
 
     The base nets' weights are stacked along a leading net axis ([n, in, out]) so every layer of all nets is
-    one batched matmul; the nets' actions (tanh outputs rescaled to the bounds) are then combined with the
-    closed form of `contributions`. Net 1 (the bottom) has no fallback head.
+    one batched matmul; the nets' outputs are then combined with the closed form of `contributions`, before
+    the tanh squash (`combine_before_tanh`, the paper's code) or after it. Net 1 (the bottom) has no fallback head.
     """
 
     def __init__(self, obs_dim: int, act_dim: int, hidden_size: int, num_layers: int, fallback_init: float,
-                 action_low: np.ndarray, action_high: np.ndarray):
+                 action_low: np.ndarray, action_high: np.ndarray, activation: str = "tanh",
+                 combine_before_tanh: bool = True):
         super().__init__()
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self.hidden_size, self.num_layers = hidden_size, num_layers
         self.fallback_init = fallback_init
+        self.activation, self.combine_before_tanh = ACTIVATIONS[activation], combine_before_tanh
         self.register_buffer("action_scale", torch.as_tensor((action_high - action_low) / 2.0, dtype=torch.float32))
         self.register_buffer("action_bias", torch.as_tensor((action_high + action_low) / 2.0, dtype=torch.float32))
         dims = [obs_dim] + [hidden_size] * num_layers
@@ -388,28 +416,33 @@ class CascadeActor(nn.Module):
         mu_weight, mu_bias, fallback_weight, fallback_bias = self._heads
         hidden = obs.expand(len(mu_weight), *obs.shape)  # every base net reads the same observation
         for weight, bias in self._hidden:
-            hidden = torch.relu(torch.baddbmm(bias, hidden, weight))  # [n, B, H], all nets at once
-        actions = torch.tanh(torch.baddbmm(mu_bias, hidden, mu_weight))  # [n, B, A], each net in [-1, 1]
+            hidden = self.activation(torch.baddbmm(bias, hidden, weight))  # [n, B, H], all nets at once
+        mu = torch.baddbmm(mu_bias, hidden, mu_weight)  # [n, B, A], each net's raw output
         fallback = torch.sigmoid(torch.baddbmm(fallback_bias, hidden[1:], fallback_weight))  # [n-1, B, 1]
         weight = contributions(fallback)  # [n, B, 1]
+        if self.combine_before_tanh:  # the paper's code: C_n = sum_i w_i mu_i, squashed once
+            squashed = torch.tanh((weight * mu).sum(0))
+        else:  # each net squashed into [-1, 1] first, then combined
+            squashed = (weight * torch.tanh(mu)).sum(0)
         # sum_i w_i (scale*t_i + bias) = scale * sum_i w_i t_i + bias, as the weights sum to one
-        action = (weight * actions).sum(0) * self.action_scale + self.action_bias
+        action = squashed * self.action_scale + self.action_bias
         return action, fallback.squeeze(-1), weight.squeeze(-1)
 
     def member(self, obs: torch.Tensor, net: int) -> torch.Tensor:
         """Action of base net `net` (0-based) acting alone."""
         hidden = obs
         for weight, bias in zip(self.hidden_weights, self.hidden_biases):
-            hidden = torch.relu(torch.addmm(bias[net], hidden, weight[net]))
+            hidden = self.activation(torch.addmm(bias[net], hidden, weight[net]))
         return torch.tanh(torch.addmm(self.mu_bias[net], hidden, self.mu_weight[net])) * self.action_scale + self.action_bias
 
 
 class QNetworks(nn.Module):
-    """`num_q` critics Q(s, a): `[obs, action] -> 256 -> 256 -> 1` (ReLU, CleanRL's QNetwork with orthogonal
-    init: gain sqrt(2) hidden, 1.0 output). Stacked [num_q, in, out]; DDPG uses one."""
+    """`num_q` critics Q(s, a): `[obs, action] -> H -> H -> 1` (the paper's code: H = 64, tanh; CleanRL's
+    QNetwork: 256, ReLU), orthogonal init: gain sqrt(2) hidden, 1.0 output. Stacked [num_q, in, out]; DDPG uses one."""
 
-    def __init__(self, obs_dim: int, act_dim: int, num_q: int = 1, hidden_size: int = 256):
+    def __init__(self, obs_dim: int, act_dim: int, num_q: int = 1, hidden_size: int = 64, activation: str = "tanh"):
         super().__init__()
+        self.activation = ACTIVATIONS[activation]
         dims = [obs_dim + act_dim, hidden_size, hidden_size, 1]
         weights, biases = [], []
         for layer, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
@@ -427,7 +460,7 @@ class QNetworks(nn.Module):
         for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
             x = torch.baddbmm(bias, x, weight)
             if i < last:
-                x = torch.relu(x)
+                x = self.activation(x)
         return x.squeeze(-1)
 
 
@@ -441,9 +474,9 @@ def count_parameters(*modules: nn.Module) -> int:
     return sum(p.numel() for m in modules for p in m.parameters())
 
 
-def make_adam(params: list[nn.Parameter], lr: float) -> torch.optim.Adam:
-    """CleanRL's Adam (default eps); the fused kernel updates all parameters at once."""
-    return torch.optim.Adam(params, lr=lr, fused=True)
+def make_adam(params: list[nn.Parameter], lr: float, eps: float) -> torch.optim.Adam:
+    """Adam (the paper's code: eps 1e-5); the fused kernel updates all parameters at once."""
+    return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -455,9 +488,9 @@ Policy = Callable[[torch.Tensor, torch.Generator], tuple[torch.Tensor, torch.Ten
 class Evaluator:
     """Runs `episodes` episodes side by side on its own envs; never touches the training envs or RNG."""
 
-    def __init__(self, env_id: str, episodes: int, seed: int):
+    def __init__(self, env_id: str, episodes: int, seed: int, obs_clip: float):
         self.envs = [gym.make(env_id) for _ in range(episodes)]
-        self.seed = seed
+        self.seed, self.obs_clip = seed, obs_clip
 
     @torch.inference_mode()
     def __call__(self, policy: Policy, call: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -473,7 +506,8 @@ class Evaluator:
         fallbacks: list[list[np.ndarray]] = [[] for _ in range(episodes)]
         active = list(range(episodes))
         while active:
-            action, fallback = policy(torch.as_tensor(obs[active], dtype=torch.float32), generator)
+            seen = np.clip(obs[active], -self.obs_clip, self.obs_clip) if self.obs_clip else obs[active]  # as in training
+            action, fallback = policy(torch.as_tensor(seen, dtype=torch.float32), generator)
             action = np.clip(action.numpy(), low, high)  # float32 rounding of scale*tanh+bias
             still_active = []
             for row, i in enumerate(active):
@@ -526,7 +560,7 @@ def add_noise(action: torch.Tensor, actor: CascadeActor, noise: float,
 # Checkpoints: written at the end of every iteration (the replay buffer is not saved)
 # ----------------------------------------------------------------------------------------------
 CHECKPOINT_NAME = "checkpoint.pt"
-CHECKPOINT_FORMAT = "cascade_ddpg/1"
+CHECKPOINT_FORMAT = "cascade_ddpg/2"  # /2: the paper's-code defaults (nets, LR, new-net restart, clipping)
 
 
 def save_checkpoint(path: str, payload: dict) -> None:
@@ -612,7 +646,11 @@ def load_checkpoint(path: str) -> dict:
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
         fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+    if isinstance(checkpoint, dict) and str(checkpoint.get("format", "")).startswith("cascade_ddpg/"):
+        if checkpoint["format"] != CHECKPOINT_FORMAT:
+            fail(f"{path} was written by an older cascade_ddpg.py ({checkpoint['format']}, before the paper's-code "
+                 f"defaults of {CHECKPOINT_FORMAT}); it cannot be resumed or evaluated exactly: start a new run")
+    else:
         fail(f"{path} is not a cascade_ddpg checkpoint")
     checkpoint["path"] = path
     return checkpoint
@@ -623,7 +661,8 @@ def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu", 
     saved = Args(**checkpoint["args"])
     rng = torch.get_rng_state()  # building the nets draws random inits; keep the caller's RNG untouched
     actor = CascadeActor(checkpoint["obs_dim"], checkpoint["act_dim"], saved.hidden_size, saved.num_layers,
-                         saved.fallback_init, checkpoint["action_low"], checkpoint["action_high"])
+                         saved.fallback_init, checkpoint["action_low"], checkpoint["action_high"], saved.activation,
+                         saved.combine_before_tanh)
     for _ in range(checkpoint["actor_size"]):
         actor.add_base_net()
     torch.set_rng_state(rng)
@@ -693,8 +732,12 @@ def validate(args: Args) -> None:
         fail(f"--n must be at least 1 (got {args.n})")
     if not 0.0 < args.fallback_init < 1.0:
         fail(f"--fallback-init must lie strictly between 0 and 1 (got {args.fallback_init})")
-    if args.hidden_size < 1 or args.num_layers < 1:
-        fail("--hidden-size and --num-layers must be at least 1")
+    if args.hidden_size < 1 or args.num_layers < 1 or args.critic_hidden_size < 1:
+        fail("--hidden-size, --num-layers and --critic-hidden-size must be at least 1")
+    if not args.adam_eps > 0:
+        fail(f"--adam-eps must be > 0 (got {args.adam_eps})")
+    if not args.obs_reward_clip >= 0:
+        fail(f"--obs-reward-clip must be >= 0 (0: no clipping; got {args.obs_reward_clip})")
     if args.batch_size < 1 or args.learning_starts < 0:
         fail("--batch-size must be at least 1 and --learning-starts at least 0")
     if args.k <= args.learning_starts:
@@ -753,7 +796,7 @@ def train(args: Args, checkpoint: dict | None = None,
     seed_everything(args.seed, args.torch_deterministic)
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
-    envs = make_vector_env(args.env_id)
+    envs = make_vector_env(args.env_id, args.obs_reward_clip)
     obs_dim = int(np.prod(envs.single_observation_space.shape))
     act_dim = int(np.prod(envs.single_action_space.shape))
     action_low, action_high = envs.single_action_space.low, envs.single_action_space.high
@@ -776,13 +819,17 @@ def train(args: Args, checkpoint: dict | None = None,
     checkpoint_path = os.path.join(run_dir, CHECKPOINT_NAME)
 
     actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init,
-                         action_low, action_high).to(device)
+                         action_low, action_high, args.activation, args.combine_before_tanh).to(device)
     target_actor = copy.deepcopy(actor)
-    qf = QNetworks(obs_dim, act_dim).to(device)
+
+    def make_critic() -> QNetworks:
+        return QNetworks(obs_dim, act_dim, hidden_size=args.critic_hidden_size, activation=args.activation).to(device)
+
+    qf = make_critic()
     qf_target = copy.deepcopy(qf)
-    q_optimizer = make_adam(list(qf.parameters()), args.learning_rate)
+    q_optimizer = make_adam(list(qf.parameters()), args.learning_rate, args.adam_eps)
     buffer = ReplayBuffer(buffer_capacity(args), obs_dim, act_dim)
-    evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed) if args.eval_every else None
+    evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed, args.obs_reward_clip) if args.eval_every else None
     eval_calls = 0
     progress = Progress(args.n * args.k, args.quiet)
 
@@ -815,6 +862,8 @@ def train(args: Args, checkpoint: dict | None = None,
             "actor": actor.state_dict(), "target_actor": target_actor.state_dict(), "actor_size": actor.size,
             "qf": qf.state_dict(), "qf_target": qf_target.state_dict(), "q_optimizer": q_optimizer.state_dict(),
             "env_states": envs.call("get_state"), "next_obs": next_obs.copy(), "rng": rng_states(),
+            # the uniform random warm-up actions of each new net come from the action space's own RNG
+            "action_space_rng": envs.single_action_space.np_random.bit_generator.state,
             "eval_calls": eval_calls,
         }
 
@@ -830,6 +879,7 @@ def train(args: Args, checkpoint: dict | None = None,
         start_time = time.time() - checkpoint["elapsed"]
         envs.reset(seed=args.seed)  # sets up the vector env; then the env gets its saved state back
         envs.call("set_state", checkpoint["env_states"])
+        envs.single_action_space.np_random.bit_generator.state = checkpoint["action_space_rng"]
         next_obs = checkpoint["next_obs"]
         actor = actor_from_checkpoint(checkpoint, device)
         target_actor = actor_from_checkpoint(checkpoint, device, key="target_actor")
@@ -842,16 +892,24 @@ def train(args: Args, checkpoint: dict | None = None,
                          f"{start_iteration}, empty replay buffer)")
 
     for iteration in range(start_iteration, args.n + 1):
-        # --- a new Cascade iteration: new base net (in the target actor too, same init), emptied buffer,
-        # kept critic, fresh actor optimizer ---
-        target_actor.add_base_net(actor.add_base_net())
+        # --- a new Cascade iteration: new base net, emptied buffer, kept critic, fresh actor optimizer ---
+        if args.restart_on_new_net:
+            # the paper's code starts a new DDPG instance per net: its target actor is a copy of the whole
+            # cascade, its target critic a copy of the kept critic, and the critic optimizer is new
+            actor.add_base_net()
+            target_actor = copy.deepcopy(actor)
+        else:  # the target actor keeps its nets and gets the new one with the online net's very init
+            target_actor.add_base_net(actor.add_base_net())
         if args.reset_critic and iteration > 1:
-            qf = QNetworks(obs_dim, act_dim).to(device)
+            qf = make_critic()
             qf_target = copy.deepcopy(qf)
-            q_optimizer = make_adam(list(qf.parameters()), args.learning_rate)
+            q_optimizer = make_adam(list(qf.parameters()), args.learning_rate, args.adam_eps)
+        elif args.restart_on_new_net and iteration > 1:
+            qf_target = copy.deepcopy(qf)
+            q_optimizer = make_adam(list(qf.parameters()), args.learning_rate, args.adam_eps)
         if not args.keep_buffer:
             buffer.clear()
-        actor_optimizer = make_adam(list(actor.parameters()), args.learning_rate)
+        actor_optimizer = make_adam(list(actor.parameters()), args.learning_rate, args.adam_eps)
         size = actor.size
         n_params = count_parameters(actor, qf)
         writer.add_scalar("cascade/size", size, global_step)
@@ -864,12 +922,21 @@ def train(args: Args, checkpoint: dict | None = None,
                                 "next_obs": next_obs, "global_step": global_step})
 
         actor_loss = None  # set by the first actor update of the iteration
-        for _ in range(args.k):
+        for step_in_iteration in range(args.k):
             global_step += 1
-            # CleanRL: uniform actions for the first learning_starts steps of the run, updates once more than
-            # learning_starts transitions are stored; after an emptied buffer the current policy collects.
-            learning = len(buffer) > args.learning_starts
-            if iteration == 1 and len(buffer) < args.learning_starts:
+            if args.anneal_lr:  # the paper's code: linearly to 0 within each iteration
+                lr_now = (1.0 - step_in_iteration / args.k) * args.learning_rate
+                q_optimizer.param_groups[0]["lr"] = actor_optimizer.param_groups[0]["lr"] = lr_now
+            # CleanRL: uniform actions for the first learning_starts steps, updates after learning_starts + 1.
+            # The paper's code restarts that count with each net; without the restart, only the run's first
+            # learning_starts steps are random and updates wait for learning_starts + 1 stored transitions.
+            if args.restart_on_new_net:
+                random_action = step_in_iteration < args.learning_starts
+                learning = step_in_iteration > args.learning_starts
+            else:
+                random_action = iteration == 1 and len(buffer) < args.learning_starts
+                learning = len(buffer) > args.learning_starts
+            if random_action:
                 actions = np.array([envs.single_action_space.sample()])
             else:
                 with torch.no_grad():
@@ -912,6 +979,7 @@ def train(args: Args, checkpoint: dict | None = None,
                     writer.add_scalar("losses/qf1_values", qf1_a_values.mean().item(), global_step)
                     writer.add_scalar("losses/qf1_loss", qf1_loss.item(), global_step)
                     writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
+                    writer.add_scalar("charts/learning_rate", actor_optimizer.param_groups[0]["lr"], global_step)
                     # fallback metrics: means over the sampled replay batch (states of this iteration's data)
                     with torch.no_grad():
                         _, batch_fallback, batch_contribution = actor(b_obs)
@@ -993,14 +1061,14 @@ def resumed_args(args: Args, checkpoint: dict, given: set[str]) -> Args:
 
 
 def evaluate_saved(args: Args) -> dict:
-    """--evaluate: the saved actor on --eval-episodes fresh episodes (noise-free unless --no-eval-deterministic)."""
+    """--evaluate: the saved actor on --eval-episodes fresh episodes (with exploration noise unless --eval-deterministic)."""
     if args.eval_episodes < 1:
         fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
     checkpoint = load_checkpoint(args.evaluate)
     saved = Args(**checkpoint["args"])
     torch.set_num_threads(args.torch_threads)
     actor = actor_from_checkpoint(checkpoint)
-    evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed)
+    evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed, saved.obs_reward_clip)
     returns, _ = evaluator(full_policy(actor, args.eval_deterministic, saved.exploration_noise))
     mode = "noise-free" if args.eval_deterministic else "exploration-noise"
     print(f"{saved.env_id}, {actor.size} base net(s), step {checkpoint['global_step']}: "

@@ -1,6 +1,6 @@
 """Cascade trained with SAC on continuous-action tasks (single-file, CleanRL style; paper Appendix H.1).
-`--n 1 --hidden-size 256 --k 2000000` is exactly the paper's SAC baseline (CleanRL sac_continuous_action
-with orthogonal init).
+`--n 1 --hidden-size 256 --k 2000000` is exactly the paper's SAC baseline (its code: CleanRL
+sac_continuous_action with orthogonal init and alpha fixed at 0.2).
 
 The actor is a Cascade of base nets `obs -> 128 -> 128 -> (mean, log-std)` (ReLU). Every `k` env steps a
 new base net b_i is stacked on the ensemble C_{i-1}; besides its mean and state-dependent log-std it emits
@@ -8,11 +8,14 @@ a fallback weight lambda_i(x) in [0, 1] and the ensemble becomes
 
     C_i(x) = lambda_i(x) * C_{i-1}(x) + (1 - lambda_i(x)) * b_i(x)     (mean and log-std, before the tanh squash)
 
-The whole stack is trained end to end by SAC. When a net is added the replay buffer is emptied (after
-which the current policy collects `--learning-starts` steps before updates resume; uniform random actions
-are used only at the very start of the run), the twin critics, their targets, their optimizer and the
-entropy temperature alpha (with its optimizer) are kept, and the actor optimizer is recreated over all
-actor nets. `--keep-buffer` and `--reset-critic` are the ablations. No observation/reward normalization.
+The whole stack is trained end to end by SAC. When a net is added, as in the paper's code (a new SAC
+instance per net): the replay buffer is emptied, `--learning-starts` uniform-random steps without updates
+follow, the twin critics are kept but their targets are re-copied from them and their optimizer is
+recreated, and the actor optimizer is recreated over all actor nets (`--no-restart-on-new-net`: the
+paper's text read literally, targets and critic optimizer kept, the current policy collects the warm-up).
+`--keep-buffer` and `--reset-critic` are the ablations. Alpha is fixed at 0.2 (the paper's code;
+`--autotune` is CleanRL's default). No observation/reward normalization; raw observations and rewards are
+clipped to +-10 (the paper's code, `--obs-reward-clip 0` turns that off).
 Paper: Schmöcker & Dockhorn, "Cascade - A sequential ensemble method for continuous control tasks",
 RLJ 2025; SPEC.md §8.
 
@@ -87,6 +90,8 @@ class Args:
     """ablation: keep the replay buffer when a base net is added (standard Cascade empties it)"""
     reset_critic: bool = False
     """ablation: fresh critics, targets and critic optimizer when a base net is added (standard: kept)"""
+    restart_on_new_net: bool = True
+    """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critics re-copied, critic optimizer recreated; `--no-restart-on-new-net`: targets and optimizer kept, the current policy collects the warm-up (the paper's text)"""
 
     # SAC (CleanRL sac_continuous_action defaults)
     buffer_size: int = 1_000_000
@@ -108,9 +113,11 @@ class Args:
     target_network_frequency: int = 1
     """update the target critics every this many steps"""
     alpha: float = 0.2
-    """entropy regularization coefficient (the start value is 1.0 with --autotune)"""
-    autotune: bool = True
-    """automatic tuning of the entropy coefficient towards the target entropy -action_dims"""
+    """entropy regularization coefficient, fixed (the paper's code; the start value is 1.0 with --autotune)"""
+    autotune: bool = False
+    """automatic tuning of alpha towards the target entropy -action_dims (CleanRL's default and the paper's text; the paper's code keeps alpha fixed)"""
+    obs_reward_clip: float = 10.0
+    """clip raw observations and rewards to +-this, as the paper's code does in its unnormalized runs (0: no clipping, CleanRL)"""
 
     # Evaluation (SPEC §6)
     eval_every: int = 10_000
@@ -150,21 +157,25 @@ def check_env_id(env_id: str) -> None:
         fail(f"unknown env id '{env_id}'.{hint} (see gymnasium's registry, e.g. Hopper-v4, Ant-v5)")
 
 
-def make_env(env_id: str, index: int = 0) -> Callable[[], gym.Env]:
-    """CleanRL's SAC env: raw episode statistics only (no action clipping: actions are squashed into bounds)."""
+def make_env(env_id: str, clip: float, index: int = 0) -> Callable[[], gym.Env]:
+    """CleanRL's SAC env (raw episode statistics; no action clipping: actions are squashed into bounds), plus
+    the paper's code's clipping of raw observations and rewards to +-clip (0: none). Returns stay raw."""
 
     def thunk() -> gym.Env:
         env = gym.make(env_id)
         env = gym.wrappers.RecordEpisodeStatistics(env)
+        if clip:
+            env = gym.wrappers.TransformObservation(env, lambda obs: np.clip(obs, -clip, clip), env.observation_space)
+            env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -clip, clip))
         return RunState(env, index)
 
     return thunk
 
 
-def make_vector_env(env_id: str) -> gym.vector.SyncVectorEnv:
+def make_vector_env(env_id: str, clip: float) -> gym.vector.SyncVectorEnv:
     # SAME_STEP: on a done step the returned obs is already the reset one and infos["final_obs"] holds the
     # real last one (the default NEXT_STEP mode would insert a fake transition after each episode).
-    return gym.vector.SyncVectorEnv([make_env(env_id)], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    return gym.vector.SyncVectorEnv([make_env(env_id, clip)], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 
 
 # Plain-data attributes of an env and its wrappers: step counters, episode statistics, the env's RNG.
@@ -298,6 +309,12 @@ def orthogonal_linear(in_features: int, out_features: int, gain: float) -> tuple
     return weight.T.contiguous(), torch.zeros(1, out_features)
 
 
+def default_linear(in_features: int, out_features: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weight [in, out] and bias [1, out] as torch's nn.Linear initializes them: uniform in +-1/sqrt(in)."""
+    layer = nn.Linear(in_features, out_features)
+    return layer.weight.detach().T.contiguous(), layer.bias.detach().reshape(1, out_features)
+
+
 def contributions(fallback: torch.Tensor) -> torch.Tensor:
     """Share w_i of each base net in the ensemble output, from the fallbacks of nets 2..n.
 
@@ -332,8 +349,9 @@ class CascadeActor(nn.Module):
     """A stack of base nets `obs -> H -> ... -> H -> (mean, log-std) (+ fallback logit)`, ReLU, evaluated together.
 
     The base nets' weights are stacked along a leading net axis ([n, in, out]) so every layer of all nets is
-    one batched matmul; the nets' means and (bounded) log-stds are then combined with the closed form of
-    `contributions`, before the tanh squash. Net 1 (the bottom) has no fallback head.
+    one batched matmul; the nets' means and raw log-stds are then combined with the closed form of
+    `contributions`, and the combined log-std is bounded, before the tanh squash (the paper's code).
+    Net 1 (the bottom) has no fallback head.
     """
 
     def __init__(self, obs_dim: int, act_dim: int, hidden_size: int, num_layers: int, fallback_init: float,
@@ -374,16 +392,21 @@ class CascadeActor(nn.Module):
 
     def add_base_net(self) -> None:
         """Stack a freshly initialized base net on top (new stacked Parameters: rebuild the optimizer).
-        Orthogonal init (paper H); it names no gains, so CleanRL PPO's: sqrt(2) hidden, 0.01 output, zero bias."""
+        As the paper's code: orthogonal init, gain sqrt(2) for the hidden layers, 0.01 for the mean head and the
+        fallback logit (one orthogonal [H, A+1] layer), zero biases; the log-std head keeps torch's nn.Linear
+        default init (uniform in +-1/sqrt(H), weight and bias)."""
         dims = [self.obs_dim] + [self.hidden_size] * self.num_layers
         grown: dict[str, torch.Tensor] = {}
         for i, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
             grown[f"hidden_weights.{i}"], grown[f"hidden_biases.{i}"] = orthogonal_linear(d_in, d_out, math.sqrt(2))
         is_bottom = self.size == 0
-        weight, bias = orthogonal_linear(self.hidden_size, 2 * self.act_dim + (0 if is_bottom else 1), 0.01)
-        grown["head_weight"], grown["head_bias"] = weight[:, : 2 * self.act_dim], bias[:, : 2 * self.act_dim]
+        a = self.act_dim
+        weight, bias = orthogonal_linear(self.hidden_size, a + (0 if is_bottom else 1), 0.01)  # [mean | fallback]
+        log_std_weight, log_std_bias = default_linear(self.hidden_size, a)
+        grown["head_weight"] = torch.cat([weight[:, :a], log_std_weight], 1)
+        grown["head_bias"] = torch.cat([bias[:, :a], log_std_bias], 1)
         if not is_bottom:
-            grown["fallback_weight"] = weight[:, 2 * self.act_dim :]
+            grown["fallback_weight"] = weight[:, a:]
             # sigmoid(logit(l0)) = l0: the new net starts by deferring a share l0 to the nets below
             grown["fallback_bias"] = torch.full((1, 1), math.log(self.fallback_init / (1 - self.fallback_init)))
         for name, param in self.base_net_parameters():
@@ -410,13 +433,13 @@ class CascadeActor(nn.Module):
         hidden = obs.expand(len(head_weight), *obs.shape)  # every base net reads the same observation
         for weight, bias in self._hidden:
             hidden = torch.relu(torch.baddbmm(bias, hidden, weight))  # [n, B, H], all nets at once
-        out = torch.baddbmm(head_bias, hidden, head_weight)  # [n, B, 2A]
-        # each net bounds its own log-std; a convex combination of bounded values stays within the bounds
-        out = torch.cat([out[..., : self.act_dim], bounded_log_std(out[..., self.act_dim :])], -1)
+        out = torch.baddbmm(head_bias, hidden, head_weight)  # [n, B, 2A]: each net's mean and raw log-std
         fallback = torch.sigmoid(torch.baddbmm(fallback_bias, hidden[1:], fallback_weight))  # [n-1, B, 1]
         weight = contributions(fallback)  # [n, B, 1]
-        combined = (weight * out).sum(0)  # C_n = sum_i w_i b_i, for mean and log-std at once
-        return combined[:, : self.act_dim], combined[:, self.act_dim :], fallback.squeeze(-1), weight.squeeze(-1)
+        combined = (weight * out).sum(0)  # C_n = sum_i w_i b_i, for mean and raw log-std at once
+        # the paper's code bounds the combined raw log-std (SAC's get_action), not each net's
+        return combined[:, : self.act_dim], bounded_log_std(combined[:, self.act_dim :]), fallback.squeeze(-1), \
+            weight.squeeze(-1)
 
     def get_action(self, obs: torch.Tensor, generator: torch.Generator | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -484,9 +507,9 @@ Policy = Callable[[torch.Tensor, torch.Generator], tuple[torch.Tensor, torch.Ten
 class Evaluator:
     """Runs `episodes` episodes side by side on its own envs; never touches the training envs or RNG."""
 
-    def __init__(self, env_id: str, episodes: int, seed: int):
+    def __init__(self, env_id: str, episodes: int, seed: int, obs_clip: float):
         self.envs = [gym.make(env_id) for _ in range(episodes)]
-        self.seed = seed
+        self.seed, self.obs_clip = seed, obs_clip
 
     @torch.inference_mode()
     def __call__(self, policy: Policy, call: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -502,7 +525,8 @@ class Evaluator:
         fallbacks: list[list[np.ndarray]] = [[] for _ in range(episodes)]
         active = list(range(episodes))
         while active:
-            action, fallback = policy(torch.as_tensor(obs[active], dtype=torch.float32), generator)
+            seen = np.clip(obs[active], -self.obs_clip, self.obs_clip) if self.obs_clip else obs[active]  # as in training
+            action, fallback = policy(torch.as_tensor(seen, dtype=torch.float32), generator)
             action = np.clip(action.numpy(), low, high)  # float32 rounding of scale*tanh+bias
             still_active = []
             for row, i in enumerate(active):
@@ -545,7 +569,7 @@ def member_policy(actor: CascadeActor, net: int, deterministic: bool) -> Policy:
 # Checkpoints: written at the end of every iteration (the replay buffer is not saved)
 # ----------------------------------------------------------------------------------------------
 CHECKPOINT_NAME = "checkpoint.pt"
-CHECKPOINT_FORMAT = "cascade_sac/1"
+CHECKPOINT_FORMAT = "cascade_sac/2"  # /2: the paper's-code defaults (alpha, log-std, new-net restart, clipping)
 
 
 def save_checkpoint(path: str, payload: dict) -> None:
@@ -631,7 +655,11 @@ def load_checkpoint(path: str) -> dict:
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
         fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+    if isinstance(checkpoint, dict) and str(checkpoint.get("format", "")).startswith("cascade_sac/"):
+        if checkpoint["format"] != CHECKPOINT_FORMAT:
+            fail(f"{path} was written by an older cascade_sac.py ({checkpoint['format']}, before the paper's-code "
+                 f"defaults of {CHECKPOINT_FORMAT}); it cannot be resumed or evaluated exactly: start a new run")
+    else:
         fail(f"{path} is not a cascade_sac checkpoint")
     checkpoint["path"] = path
     return checkpoint
@@ -715,6 +743,8 @@ def validate(args: Args) -> None:
         fail(f"--fallback-init must lie strictly between 0 and 1 (got {args.fallback_init})")
     if args.hidden_size < 1 or args.num_layers < 1:
         fail("--hidden-size and --num-layers must be at least 1")
+    if not args.obs_reward_clip >= 0:
+        fail(f"--obs-reward-clip must be >= 0 (0: no clipping; got {args.obs_reward_clip})")
     if args.batch_size < 1 or args.learning_starts < 0:
         fail("--batch-size must be at least 1 and --learning-starts at least 0")
     if args.k <= args.learning_starts:
@@ -773,7 +803,7 @@ def train(args: Args, checkpoint: dict | None = None,
     seed_everything(args.seed, args.torch_deterministic)
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
-    envs = make_vector_env(args.env_id)
+    envs = make_vector_env(args.env_id, args.obs_reward_clip)
     obs_dim = int(np.prod(envs.single_observation_space.shape))
     act_dim = int(np.prod(envs.single_action_space.shape))
     action_low, action_high = envs.single_action_space.low, envs.single_action_space.high
@@ -805,7 +835,7 @@ def train(args: Args, checkpoint: dict | None = None,
     a_optimizer = make_adam([log_alpha], args.q_lr)
     alpha = log_alpha.exp().item() if args.autotune else args.alpha
     buffer = ReplayBuffer(buffer_capacity(args), obs_dim, act_dim)
-    evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed) if args.eval_every else None
+    evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed, args.obs_reward_clip) if args.eval_every else None
     eval_calls = 0
     progress = Progress(args.n * args.k, args.quiet)
 
@@ -839,6 +869,8 @@ def train(args: Args, checkpoint: dict | None = None,
             "qf": qf.state_dict(), "qf_target": qf_target.state_dict(), "q_optimizer": q_optimizer.state_dict(),
             "log_alpha": log_alpha.detach().cpu(), "a_optimizer": a_optimizer.state_dict(), "alpha": alpha,
             "env_states": envs.call("get_state"), "next_obs": next_obs.copy(), "rng": rng_states(),
+            # the uniform random warm-up actions of each new net come from the action space's own RNG
+            "action_space_rng": envs.single_action_space.np_random.bit_generator.state,
             "eval_calls": eval_calls,
         }
 
@@ -854,6 +886,7 @@ def train(args: Args, checkpoint: dict | None = None,
         start_time = time.time() - checkpoint["elapsed"]
         envs.reset(seed=args.seed)  # sets up the vector env; then the env gets its saved state back
         envs.call("set_state", checkpoint["env_states"])
+        envs.single_action_space.np_random.bit_generator.state = checkpoint["action_space_rng"]
         next_obs = checkpoint["next_obs"]
         actor = actor_from_checkpoint(checkpoint, device)
         qf.load_state_dict(checkpoint["qf"])
@@ -874,6 +907,11 @@ def train(args: Args, checkpoint: dict | None = None,
             qf = QNetworks(obs_dim, act_dim).to(device)
             qf_target = copy.deepcopy(qf)
             q_optimizer = make_adam(list(qf.parameters()), args.q_lr)
+        elif args.restart_on_new_net and iteration > 1:
+            # the paper's code starts a new SAC instance per net: same critics, targets copied from them anew,
+            # a new critic optimizer
+            qf_target = copy.deepcopy(qf)
+            q_optimizer = make_adam(list(qf.parameters()), args.q_lr)
         if not args.keep_buffer:
             buffer.clear()
         actor_optimizer = make_adam(list(actor.parameters()), args.policy_lr)
@@ -889,12 +927,18 @@ def train(args: Args, checkpoint: dict | None = None,
                                 "envs": envs, "next_obs": next_obs, "global_step": global_step})
 
         actor_loss = alpha_loss = None  # set by the first actor update of the iteration
-        for _ in range(args.k):
+        for step_in_iteration in range(args.k):
             global_step += 1
-            # CleanRL: uniform actions for the first learning_starts steps of the run, updates once more than
-            # learning_starts transitions are stored; after an emptied buffer the current policy collects.
-            learning = len(buffer) > args.learning_starts
-            if iteration == 1 and len(buffer) < args.learning_starts:
+            # CleanRL: uniform actions for the first learning_starts steps, updates after learning_starts + 1.
+            # The paper's code restarts that count with each net; without the restart, only the run's first
+            # learning_starts steps are random and updates wait for learning_starts + 1 stored transitions.
+            if args.restart_on_new_net:
+                random_action = step_in_iteration < args.learning_starts
+                learning = step_in_iteration > args.learning_starts
+            else:
+                random_action = iteration == 1 and len(buffer) < args.learning_starts
+                learning = len(buffer) > args.learning_starts
+            if random_action:
                 actions = np.array([envs.single_action_space.sample()])
             else:
                 with torch.no_grad():
@@ -1012,7 +1056,7 @@ RESUME_OVERRIDABLE = {"resume", "quiet", "torch_threads", "cuda"}
 
 
 def explicit_fields(argv: list[str]) -> set[str]:
-    """Names of the Args fields given on the command line (`--env-id X`, `--no-autotune`, ...)."""
+    """Names of the Args fields given on the command line (`--env-id X`, `--autotune`, ...)."""
     names = set(Args.__dataclass_fields__)
     given = set()
     for token in argv:
@@ -1046,7 +1090,7 @@ def evaluate_saved(args: Args) -> dict:
     saved = Args(**checkpoint["args"])
     torch.set_num_threads(args.torch_threads)
     actor = actor_from_checkpoint(checkpoint)
-    evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed)
+    evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed, saved.obs_reward_clip)
     returns, _ = evaluator(full_policy(actor, args.eval_deterministic))
     mode = "deterministic" if args.eval_deterministic else "stochastic"
     print(f"{saved.env_id}, {actor.size} base net(s), step {checkpoint['global_step']}: "
