@@ -96,7 +96,7 @@ class Args:
     freeze_previous: bool = False
     """only the newest base net trains; older ones are frozen (Fig. 4, 13 ablation)"""
     start_full: bool = False
-    """build all n base nets at the start instead of one per iteration (Fig. 5 ablation)"""
+    """build all n base nets at the start instead of one per iteration (Fig. 5 ablation; as the paper's code, one critic for the whole run, while Adam and the LR cycle still restart every k)"""
     lr_schedule: Literal["cyclic", "global", "constant"] = "cyclic"
     """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (Fig. 12)"""
 
@@ -470,6 +470,8 @@ def train(args: Args, checkpoint: dict | None = None,
             checkpoint, updates_per_iteration, device)
 
     critic = None  # each iteration makes its own (a resumed run that had finished has none left to make)
+    if checkpoint is not None and args.start_full:
+        critic = run.saved_critic(checkpoint, device)  # --start-full keeps one critic for the whole run
     for iteration in range(start_iteration, args.n + 1):
         if checkpoint is not None and iteration == start_iteration and start_update > 1:
             critic, params, optimizer = run.restore_mid_iteration(checkpoint, actor, device)
@@ -479,7 +481,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 actor.add_base_net()
             if args.freeze_previous:
                 actor.freeze_below(actor.size - 1)
-            critic = make_critic(obs_dim).to(device)
+            if critic is None or not args.start_full:  # --start-full: the paper's code keeps its one critic
+                critic = make_critic(obs_dim).to(device)
             params = share_one_buffer([*actor.parameters(), *critic.parameters()])
             optimizer = make_optimizer([params], args.learning_rate)
         run.iteration_start(iteration, actor, critic, global_step)
@@ -988,11 +991,11 @@ def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0) -> Call
         env = gym.wrappers.ClipAction(env)
         if normalize:
             env = gym.wrappers.NormalizeObservation(env)
-            env = gym.wrappers.TransformObservation(
-                env, lambda obs: np.clip(obs, -OBS_CLIP, OBS_CLIP), env.observation_space
-            )
+        # clipped to +-10 with or without normalization: the paper's code clips raw values in its norm:False runs
+        env = gym.wrappers.TransformObservation(env, lambda obs: np.clip(obs, -OBS_CLIP, OBS_CLIP), env.observation_space)
+        if normalize:
             env = gym.wrappers.NormalizeReward(env, gamma=gamma)
-            env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -REWARD_CLIP, REWARD_CLIP))
+        env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -REWARD_CLIP, REWARD_CLIP))
         return RunState(env, index)
 
     return thunk
@@ -1048,6 +1051,9 @@ class RunState(gym.Wrapper):
     def set_state(self, states: list[dict]) -> None:
         """Restore this env's entry of `states` (one per env of the vector env)."""
         state, layer = states[self.index], self.env
+        if len(state["layers"]) != wrapper_depth(self.env):
+            raise SystemExit("error: the checkpoint's env wrappers differ from this script's (it was written by an "
+                             "older version); it cannot be resumed exactly: start a new run")
         for attrs in state["layers"]:
             for key, value in attrs.items():
                 setattr(layer, key, copy.deepcopy(value))
@@ -1058,15 +1064,23 @@ class RunState(gym.Wrapper):
             layer.data = pickle.loads(state["sim"])
 
 
+def wrapper_depth(env: gym.Env) -> int:
+    """Number of layers (wrappers and the env itself) below RunState."""
+    depth = 1
+    while isinstance(env, gym.Wrapper):
+        env, depth = env.env, depth + 1
+    return depth
+
+
 def obs_statistics(envs: gym.vector.VectorEnv) -> tuple[np.ndarray, np.ndarray] | None:
     """Copy of the first training env's observation mean/var (None without normalization)."""
     return envs.call("obs_statistics")[0]
 
 
 def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
-    """What the training wrappers do to a raw observation, with frozen statistics."""
+    """What the training wrappers do to a raw observation, with frozen statistics (None: clipping only)."""
     if stats is None:
-        return obs.astype(np.float32)
+        return np.clip(obs, -OBS_CLIP, OBS_CLIP).astype(np.float32)
     mean, var = stats
     return np.clip((obs - mean) / np.sqrt(var + NORM_EPS), -OBS_CLIP, OBS_CLIP).astype(np.float32)
 
@@ -1127,12 +1141,17 @@ class RunLog:
         self.progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
         return actor, global_step, next_obs, checkpoint["next_done"], iteration, update
 
-    def restore_mid_iteration(self, checkpoint: dict, actor: CascadeActor, device: torch.device) -> tuple:
-        """The saved critic and optimizer of an iteration the checkpoint was written in the middle of."""
+    def saved_critic(self, checkpoint: dict, device: torch.device) -> nn.Module:
+        """The critic the checkpoint holds."""
         rng = torch.get_rng_state()  # the critic's init draws must not shift the restored RNG stream
         critic = make_critic(self.obs_dim).to(device)
         torch.set_rng_state(rng)
         critic.load_state_dict(checkpoint["critic"])
+        return critic
+
+    def restore_mid_iteration(self, checkpoint: dict, actor: CascadeActor, device: torch.device) -> tuple:
+        """The saved critic and optimizer of an iteration the checkpoint was written in the middle of."""
+        critic = self.saved_critic(checkpoint, device)
         params = share_one_buffer([*actor.parameters(), *critic.parameters()])
         optimizer = make_optimizer([params], self.args.learning_rate)
         optimizer.load_state_dict(checkpoint["optimizer"])

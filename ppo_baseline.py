@@ -78,7 +78,7 @@ class Args:
     hidden_size: int = 64
     """width of the two hidden layers of the actor (the critic stays 64-64)"""
     lr_schedule: Literal["global", "cyclic", "constant"] = "global"
-    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps (Fig. 3)"""
+    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps, with a fresh Adam at each restart as the paper's code ran Fig. 3 (a new PPO instance per cycle, the nets kept)"""
     cycle_steps: int = 1_000_000
     """length of one learning-rate cycle in env steps, with --lr-schedule cyclic"""
 
@@ -298,6 +298,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             frac = 1.0 - (update - 1.0) / total_updates
         elif args.lr_schedule == "cyclic":
             frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle
+            if update > 1 and (update - 1) % updates_per_cycle == 0:
+                optimizer = make_optimizer([params], args.learning_rate)  # a new cycle: fresh Adam moments
         else:
             frac = 1.0
         optimizer.param_groups[0]["lr"] = frac * args.learning_rate
@@ -715,11 +717,11 @@ def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0) -> Call
         env = gym.wrappers.ClipAction(env)
         if normalize:
             env = gym.wrappers.NormalizeObservation(env)
-            env = gym.wrappers.TransformObservation(
-                env, lambda obs: np.clip(obs, -OBS_CLIP, OBS_CLIP), env.observation_space
-            )
+        # clipped to +-10 with or without normalization: the paper's code clips raw values in its norm:False runs
+        env = gym.wrappers.TransformObservation(env, lambda obs: np.clip(obs, -OBS_CLIP, OBS_CLIP), env.observation_space)
+        if normalize:
             env = gym.wrappers.NormalizeReward(env, gamma=gamma)
-            env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -REWARD_CLIP, REWARD_CLIP))
+        env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -REWARD_CLIP, REWARD_CLIP))
         return RunState(env, index)
 
     return thunk
@@ -775,6 +777,9 @@ class RunState(gym.Wrapper):
     def set_state(self, states: list[dict]) -> None:
         """Restore this env's entry of `states` (one per env of the vector env)."""
         state, layer = states[self.index], self.env
+        if len(state["layers"]) != wrapper_depth(self.env):
+            raise SystemExit("error: the checkpoint's env wrappers differ from this script's (it was written by an "
+                             "older version); it cannot be resumed exactly: start a new run")
         for attrs in state["layers"]:
             for key, value in attrs.items():
                 setattr(layer, key, copy.deepcopy(value))
@@ -785,15 +790,23 @@ class RunState(gym.Wrapper):
             layer.data = pickle.loads(state["sim"])
 
 
+def wrapper_depth(env: gym.Env) -> int:
+    """Number of layers (wrappers and the env itself) below RunState."""
+    depth = 1
+    while isinstance(env, gym.Wrapper):
+        env, depth = env.env, depth + 1
+    return depth
+
+
 def obs_statistics(envs: gym.vector.VectorEnv) -> tuple[np.ndarray, np.ndarray] | None:
     """Copy of the first training env's observation mean/var (None without normalization)."""
     return envs.call("obs_statistics")[0]
 
 
 def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
-    """What the training wrappers do to a raw observation, with frozen statistics."""
+    """What the training wrappers do to a raw observation, with frozen statistics (None: clipping only)."""
     if stats is None:
-        return obs.astype(np.float32)
+        return np.clip(obs, -OBS_CLIP, OBS_CLIP).astype(np.float32)
     mean, var = stats
     return np.clip((obs - mean) / np.sqrt(var + NORM_EPS), -OBS_CLIP, OBS_CLIP).astype(np.float32)
 

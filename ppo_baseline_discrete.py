@@ -3,7 +3,9 @@
 Equivalent to CleanRL's `ppo.py` (same 64-64 actor and critic, same hyperparameters) on gymnasium 1.x.
 Box action spaces of A dims are discretized into the 2^A corners of the box (paper Appendix I), which
 gives the "discrete PPO" of the paper's Fig. 16; natively discrete envs such as CartPole-v1 are used
-as they are. Extra flags shared with `ppo_baseline.py`: `--hidden-size`, `--lr-schedule`, `--no-normalize`.
+as they are. Discretized Box tasks get observation/reward normalization and +-10 clipping by default, as the
+paper's code ran Fig. 16 (`--no-normalize`: clipping only). Extra flags shared with `ppo_baseline.py`:
+`--hidden-size`, `--lr-schedule`, `--no-normalize`.
 
     python ppo_baseline_discrete.py --env-id Hopper-v4 --total-timesteps 10000000
     tensorboard --logdir runs
@@ -61,8 +63,8 @@ class Args:
     """the id of a gymnasium environment with a Discrete action space, or a Box one to discretize (e.g. Hopper-v4)"""
     discretize: Literal["auto", "on", "off"] = "auto"
     """auto: discretize a Box action space of A <= 10 dims into 2^A actions (Humanoid's 17 are refused), use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
-    normalize: bool = False
-    """observation and reward normalization (clip ±10) of discretized Box envs; off by default because the paper ran CleanRL ppo.py unmodified, which has none; natively discrete envs are never normalized"""
+    normalize: bool = True
+    """observation and reward normalization of discretized Box envs, as the paper's code ran Fig. 16 (its text names CleanRL ppo.py, which has none: `--no-normalize`); their observations and rewards are clipped to ±10 either way; natively discrete envs are never normalized or clipped (CleanRL)"""
 
     # Network and schedule
     total_timesteps: int = 10_000_000
@@ -182,21 +184,23 @@ class DiscretizeAction(gym.ActionWrapper):
 
 
 def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool, index: int = 0) -> Callable[[], gym.Env]:
-    """Per env: raw episode stats, the 2^A discretization and (for discretized MuJoCo tasks) the
-    obs/reward normalization of the continuous scripts, under the outermost `RunState`.
-    `normalize` is already resolved (see `resolve`)."""
+    """Per env: raw episode stats and, for discretized Box tasks, the 2^A discretization, the obs/reward
+    normalization of the continuous scripts (the paper's code's default) and the clipping to +-10, under the
+    outermost `RunState`. `normalize` is already resolved (see `resolve`)."""
 
     def thunk() -> gym.Env:
         env = gym.make(env_id)
         env = gym.wrappers.RecordEpisodeStatistics(env)  # raw, unnormalized returns
-        if discretize:
+        if discretize:  # a MuJoCo-like Box task, wrapped as the paper's code wraps it
             env = DiscretizeAction(env)  # corners lie inside the box: no ClipAction needed
-        if normalize:
-            env = gym.wrappers.NormalizeObservation(env)
+            if normalize:
+                env = gym.wrappers.NormalizeObservation(env)
+            # clipped to +-10 with or without normalization (the paper's code clips raw values in norm:False runs)
             env = gym.wrappers.TransformObservation(
                 env, lambda obs: np.clip(obs, -OBS_CLIP, OBS_CLIP), env.observation_space
             )
-            env = gym.wrappers.NormalizeReward(env, gamma=gamma)
+            if normalize:
+                env = gym.wrappers.NormalizeReward(env, gamma=gamma)
             env = gym.wrappers.TransformReward(env, lambda r: np.clip(r, -REWARD_CLIP, REWARD_CLIP))
         return RunState(env, index)
 
@@ -251,6 +255,9 @@ class RunState(gym.Wrapper):
     def set_state(self, states: list[dict]) -> None:
         """Restore this env's entry of `states` (one per env of the vector env)."""
         state, layer = states[self.index], self.env
+        if len(state["layers"]) != wrapper_depth(self.env):
+            raise SystemExit("error: the checkpoint's env wrappers differ from this script's (it was written by an "
+                             "older version); it cannot be resumed exactly: start a new run")
         for attrs in state["layers"]:
             for key, value in attrs.items():
                 setattr(layer, key, copy.deepcopy(value))
@@ -261,15 +268,24 @@ class RunState(gym.Wrapper):
             layer.data = pickle.loads(state["sim"])
 
 
+def wrapper_depth(env: gym.Env) -> int:
+    """Number of layers (wrappers and the env itself) below RunState."""
+    depth = 1
+    while isinstance(env, gym.Wrapper):
+        env, depth = env.env, depth + 1
+    return depth
+
+
 def obs_statistics(envs: gym.vector.VectorEnv) -> tuple[np.ndarray, np.ndarray] | None:
     """Copy of the first training env's observation mean/var (None without normalization)."""
     return envs.call("obs_statistics")[0]
 
 
-def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
-    """What the training wrappers do to a raw observation, with frozen statistics."""
+def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None, clip: bool) -> np.ndarray:
+    """What the training wrappers do to a raw observation, with frozen statistics (None: no normalization;
+    `clip`: a discretized Box task, whose raw observations are clipped too)."""
     if stats is None:
-        return obs.astype(np.float32)
+        return (np.clip(obs, -OBS_CLIP, OBS_CLIP) if clip else obs).astype(np.float32)
     mean, var = stats
     return np.clip((obs - mean) / np.sqrt(var + NORM_EPS), -OBS_CLIP, OBS_CLIP).astype(np.float32)
 
@@ -314,7 +330,7 @@ class Evaluator:
 
     def __init__(self, env_id: str, episodes: int, seed: int, discretize: bool):
         self.envs = [DiscretizeAction(gym.make(env_id)) if discretize else gym.make(env_id) for _ in range(episodes)]
-        self.seed = seed
+        self.seed, self.discretize = seed, discretize
 
     @torch.inference_mode()
     def __call__(
@@ -334,7 +350,7 @@ class Evaluator:
         returns = np.zeros(episodes)
         active = list(range(episodes))
         while active:
-            logits = actor(torch.as_tensor(normalize_obs(obs[active], stats)))
+            logits = actor(torch.as_tensor(normalize_obs(obs[active], stats, self.discretize)))
             if deterministic:
                 action = logits.argmax(-1).numpy()
             else:
@@ -503,7 +519,7 @@ def resolve(args: Args) -> tuple[bool, bool]:
         if action_space.start != 0:
             fail(f"{args.env_id}'s actions start at {action_space.start}; only Discrete(n) spaces starting at 0 "
                  "are supported")
-        return False, False  # as CleanRL ppo.py: natively discrete envs get no normalization
+        return False, False  # as CleanRL ppo.py: natively discrete envs get no normalization or clipping
     if isinstance(action_space, gym.spaces.Box):
         if args.discretize == "off":
             fail(f"{args.env_id} has a Box action space: with --discretize off this script needs a discrete env "

@@ -147,11 +147,11 @@ def test_parameter_counts_by_hand():
 
 def test_normalization_and_discretization_follow_the_env():
     assert cpd.resolve(cpd.Args(env_id="CartPole-v1")) == (False, False)  # CleanRL ppo.py: no normalization
-    assert cpd.resolve(cpd.Args(env_id="Hopper-v4")) == (True, False)  # the paper: ppo.py unmodified
-    assert cpd.resolve(cpd.Args(env_id="Hopper-v4", normalize=True)) == (True, True)
+    assert cpd.resolve(cpd.Args(env_id="Hopper-v4")) == (True, True)  # the paper's code: normalized
+    assert cpd.resolve(cpd.Args(env_id="Hopper-v4", normalize=False)) == (True, False)
     assert pbd.resolve(pbd.Args(env_id="CartPole-v1", discretize="off")) == (False, False)
-    assert pbd.resolve(pbd.Args(env_id="Hopper-v4", discretize="on", normalize=True)) == (True, True)
-    assert pbd.resolve(pbd.Args(env_id="Hopper-v4", discretize="on")) == (True, False)
+    assert pbd.resolve(pbd.Args(env_id="Hopper-v4", discretize="on")) == (True, True)
+    assert pbd.resolve(pbd.Args(env_id="Hopper-v4", discretize="on", normalize=False)) == (True, False)
 
 
 def test_each_iteration_gets_fresh_critic_and_optimizer(tmp_path, capsys):
