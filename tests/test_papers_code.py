@@ -257,3 +257,17 @@ def test_presets_run_the_papers_setups():
     assert preset_args("start-full")["cascade_start_full"].start_full  # Fig. 5
     nonorm = preset_args("frozen")  # Fig. 13
     assert not nonorm["cascade_nonorm"].normalize and nonorm["cascade_frozen_nonorm"].freeze_previous
+
+
+@pytest.mark.parametrize("mod,make", [(cpc, lambda: cpc.make_env("Hopper-v4", 0.99, False)()),
+                                      (cpd, lambda: cpd.make_env("Hopper-v4", 0.99, True, False)())])
+def test_resume_refuses_env_states_of_another_wrapper_stack(mod, make):
+    """A checkpoint of an older version (before the clipping wrappers of --no-normalize) cannot be restored into
+    this wrapper stack: one line instead of attributes set on the wrong wrappers."""
+    env = make()
+    env.reset(seed=0)
+    state = env.get_state()
+    env.set_state([state])  # the same stack: fine
+    state["layers"] = state["layers"][1:]  # one wrapper fewer, as an older version had
+    with pytest.raises(SystemExit, match="older version"):
+        env.set_state([state])
