@@ -80,7 +80,7 @@ class Args:
     env_id: str = "Ant-v4"
     """the id of a gymnasium environment with a Box action space (MuJoCo v4 or v5 ids)"""
     normalize: bool = True
-    """observation and reward normalization (with clipping to ±10); `--no-normalize` is the Fig. 13 ablation"""
+    """observation and reward normalization; `--no-normalize` is the Fig. 13 ablation; observations and rewards are clipped to ±10 either way (the paper's code clips raw values too)"""
 
     # Cascade
     n: int = 6
@@ -980,7 +980,7 @@ def check_env_id(env_id: str) -> None:
 
 
 def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0) -> Callable[[], gym.Env]:
-    """CleanRL's wrapper stack, per env: raw episode stats, action clip, obs/reward normalization."""
+    """CleanRL's wrapper stack, per env: raw episode stats, action clip, obs/reward normalization, +-10 clips."""
 
     def thunk() -> gym.Env:
         if multiprocessing.current_process().name != "MainProcess":  # a --num-envs worker: stops are for training

@@ -70,11 +70,14 @@ def sac_pendulum(seed: int, track_dir: str, broken: bool = False) -> Curve:
     return eval_curve(cascade_sac, args)
 
 
-def ddpg_pendulum(seed: int, track_dir: str, broken: bool = False) -> Curve:
-    """Cascade DDPG, 2 nets of 4K steps on Pendulum-v1 (500 random steps first), evaluated every 1K steps."""
+def ddpg_inverted_pendulum(seed: int, track_dir: str, broken: bool = False) -> Curve:
+    """Cascade DDPG with the paper code's 16-16 tanh nets, 2 nets of 4K steps on InvertedPendulum-v4 (500
+    random steps at the start of each), evaluated every 1K steps. (Pendulum-v1 needs many more steps with these
+    small nets and the annealed learning rate.)"""
     args = cascade_ddpg.Args(
-        env_id="Pendulum-v1", n=2, k=K_DDPG, learning_starts=500, batch_size=128, eval_every=1000, eval_episodes=10,
-        track_dir=track_dir, seed=seed, quiet=True, learning_rate=0.0 if broken else 3e-4)
+        env_id="InvertedPendulum-v4", n=2, k=K_DDPG, learning_starts=500, batch_size=128, eval_every=1000,
+        eval_episodes=10, eval_members=False, track_dir=track_dir, seed=seed, quiet=True,
+        learning_rate=0.0 if broken else 3e-4)
     return eval_curve(cascade_ddpg, args)
 
 
@@ -83,7 +86,7 @@ CHECKS: dict[str, Callable[[int, str, bool], Curve]] = {
     "ppo_inverted_pendulum": ppo_inverted_pendulum,
     "cascade_ppo_cartpole": cascade_ppo_cartpole,
     "sac_pendulum": sac_pendulum,
-    "ddpg_pendulum": ddpg_pendulum,
+    "ddpg_inverted_pendulum": ddpg_inverted_pendulum,
 }
 
 
@@ -119,7 +122,7 @@ SCORES: dict[str, tuple[Callable[[Curve], float], float]] = {
     "ppo_inverted_pendulum": (final_return, 300.0),
     "cascade_ppo_cartpole": (best_with_two_nets, 100.0),
     "sac_pendulum": (mean_of_last_three, -750.0),
-    "ddpg_pendulum": (mean_of_last_three, -750.0),
+    "ddpg_inverted_pendulum": (mean_of_last_three, 50.0),
 }
 
 

@@ -153,15 +153,15 @@ def test_evaluation_sees_the_observations_training_sees():
     np.testing.assert_array_equal(cpc.normalize_obs(np.array([[50.0, -50.0, 3.0]]), None), [CLIPPED])
     np.testing.assert_array_equal(pb.normalize_obs(np.array([[50.0, -50.0, 3.0]]), None), [CLIPPED])
     np.testing.assert_array_equal(cpd.normalize_obs(np.array([[50.0, -50.0, 3.0]]), None, clip=True), [CLIPPED])
+    seen = []
+
+    def policy(x, generator):
+        seen.append(x.numpy().copy())
+        return torch.zeros(len(x), 1), torch.zeros(0, len(x))
+
     for mod in (cs, cd):
-        seen = []
-
-        def policy(x, generator):
-            seen.append(x.numpy().copy())
-            return torch.zeros(len(x), 1), torch.zeros(0, len(x))
-
-        evaluator = mod.Evaluator("CascadeTestLoud-v0", 2, seed=0, obs_clip=10.0)
-        evaluator(policy)
+        seen.clear()
+        mod.Evaluator("CascadeTestLoud-v0", 2, seed=0, obs_clip=10.0)(policy)
         assert np.array_equal(np.concatenate(seen), np.tile(CLIPPED, (10, 1)))
 
 
