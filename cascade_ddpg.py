@@ -965,7 +965,7 @@ def train(args: Args, checkpoint: dict | None = None,
                 qf1_loss.backward()
                 q_optimizer.step()
 
-                if global_step % args.policy_frequency == 0:
+                if step_in_iteration % args.policy_frequency == 0:  # counted from 0 with each net (the paper's code)
                     qf.requires_grad_(False)  # the actor loss needs dQ/da only; skip the critic's weight gradients
                     actor_loss = -qf(b_obs, actor(b_obs)[0])[0].mean()
                     actor_optimizer.zero_grad()

@@ -88,7 +88,7 @@ class Args:
     freeze_previous: bool = False
     """only the newest base net trains; older ones are frozen (Fig. 4, 13 ablation)"""
     start_full: bool = False
-    """build all n base nets at the start instead of one per iteration (Fig. 5 ablation)"""
+    """build all n base nets at the start instead of one per iteration (Fig. 5 ablation; as the paper's code, one critic for the whole run, while Adam and the LR cycle still restart every k)"""
     lr_schedule: Literal["cyclic", "global", "constant"] = "cyclic"
     """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (Fig. 12)"""
 
@@ -812,13 +812,20 @@ def train(args: Args, checkpoint: dict | None = None,
         say(f"resumed {checkpoint['path']} at global_step={global_step}")
     last_checkpoint_step = global_step
 
+    def saved_critic() -> nn.Module:
+        rng = torch.get_rng_state()  # the critic's init draws must not shift the restored RNG stream
+        critic = make_critic(obs_dim).to(device)
+        torch.set_rng_state(rng)
+        critic.load_state_dict(checkpoint["critic"])
+        return critic
+
+    critic = None
+    if checkpoint is not None and args.start_full:
+        critic = saved_critic()  # --start-full keeps one critic for the whole run
     for iteration in range(start_iteration, args.n + 1):
         resuming_mid_iteration = checkpoint is not None and iteration == start_iteration and start_update > 1
         if resuming_mid_iteration:
-            rng = torch.get_rng_state()  # the critic's init draws must not shift the restored RNG stream
-            critic = make_critic(obs_dim).to(device)
-            torch.set_rng_state(rng)
-            critic.load_state_dict(checkpoint["critic"])
+            critic = saved_critic()
             optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
             optimizer.load_state_dict(checkpoint["optimizer"])
         else:
@@ -827,7 +834,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 actor.add_base_net()
             if args.freeze_previous:
                 actor.freeze_below(actor.size - 1)
-            critic = make_critic(obs_dim).to(device)
+            if critic is None or not args.start_full:  # --start-full: the paper's code keeps its one critic
+                critic = make_critic(obs_dim).to(device)
             optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
         size = actor.size
         params = optimizer.param_groups[0]["params"]

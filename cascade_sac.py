@@ -969,7 +969,9 @@ def train(args: Args, checkpoint: dict | None = None,
                 qf_loss.backward()
                 q_optimizer.step()
 
-                if global_step % args.policy_frequency == 0:  # TD3-style delay, compensated by as many updates
+                # TD3-style delay, compensated by as many updates; counted from 0 with each net, as the paper's
+                # code (a new instance per net) and CleanRL (a 0-based step) count it
+                if step_in_iteration % args.policy_frequency == 0:
                     qf.requires_grad_(False)  # the actor loss needs dQ/da only; skip the critics' weight gradients
                     for _ in range(args.policy_frequency):
                         pi, log_pi, _ = actor.get_action(b_obs)
@@ -988,7 +990,7 @@ def train(args: Args, checkpoint: dict | None = None,
                             alpha = log_alpha.exp().item()
                     qf.requires_grad_(True)
 
-                if global_step % args.target_network_frequency == 0:
+                if step_in_iteration % args.target_network_frequency == 0:
                     soft_update(qf_target, qf, args.tau)
 
                 if global_step % 100 == 0 and actor_loss is not None:

@@ -72,7 +72,7 @@ class Args:
     hidden_size: int = 64
     """width of the two hidden layers of the actor (the critic stays 64-64)"""
     lr_schedule: Literal["global", "cyclic", "constant"] = "global"
-    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps"""
+    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps, with a fresh Adam at each restart (as ppo_baseline.py and the paper's code)"""
     cycle_steps: int = 1_000_000
     """length of one learning-rate cycle in env steps, with --lr-schedule cyclic"""
 
@@ -650,6 +650,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             frac = 1.0 - (update - 1.0) / total_updates
         elif args.lr_schedule == "cyclic":
             frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle
+            if update > 1 and (update - 1) % updates_per_cycle == 0:  # a new cycle: fresh Adam moments (as ppo_baseline.py)
+                optimizer = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=args.learning_rate, eps=1e-5)
         else:
             frac = 1.0
         optimizer.param_groups[0]["lr"] = frac * args.learning_rate

@@ -209,6 +209,26 @@ def test_start_full_keeps_one_critic_and_restarts_adam_and_the_lr_cycle(tmp_path
             torch.testing.assert_close(b, a, rtol=0, atol=0, msg=f"{name}.{key}")
 
 
+def test_discrete_start_full_keeps_one_critic(tmp_path):
+    seen = []
+    args = cpd.Args(env_id="Hopper-v4", n=2, k=512, num_envs=2, num_steps=128, start_full=True, eval_every=0,
+                    quiet=True, track_dir=str(tmp_path / "run"))
+    result = cpd.train(args, on_iteration_start=lambda state: seen.append((state["critic"], state["optimizer"])))
+    (critic_1, optimizer_1), (critic_2, optimizer_2) = seen
+    assert critic_2 is critic_1 is result["critic"] and optimizer_2 is not optimizer_1
+    resumed = resume_from(cpd, os.path.join(result["run_dir"], "iteration_1.pt"), tmp_path / "resumed")
+    for (key, a), b in zip(result["critic"].state_dict().items(), resumed["critic"].state_dict().values()):
+        torch.testing.assert_close(b, a, rtol=0, atol=0, msg=key)
+
+
+def test_cyclic_discrete_baseline_restarts_adam_every_cycle(tmp_path):
+    args = pbd.Args(env_id="CartPole-v1", total_timesteps=2048, num_envs=2, num_steps=128, lr_schedule="cyclic",
+                    cycle_steps=1024, eval_every=0, quiet=True, track_dir=str(tmp_path))
+    checkpoint = pbd.load_checkpoint(pbd.train(args)["run_dir"])
+    # the last cycle's 4 updates x 4 epochs x 4 minibatches, not both cycles' 128
+    assert {int(s["step"]) for s in checkpoint["optimizer"]["state"].values()} == {4 * 4 * 4}
+
+
 def test_cyclic_baseline_restarts_adam_every_cycle(tmp_path):
     """The paper's code ran Fig. 3's baseline as a new PPO instance per cycle (the nets kept): Adam restarts."""
     args = pb.Args(env_id="Hopper-v4", total_timesteps=2048, num_steps=256, num_minibatches=4, update_epochs=2,
