@@ -1091,8 +1091,9 @@ def capped_cubic_video_schedule(episode_id: int) -> bool:
 
 class TrainingVideo(gym.Wrapper):
     """--capture-video, CleanRL's training videos: the episodes of this env that `capped_cubic_video_schedule`
-    picks become `<folder>/rl-video-episode-<i>.mp4` when they end (gymnasium's RecordVideo would need moviepy). Rendering only reads the simulation: observations,
-    rewards and every RNG stream of training are the same with and without it."""
+    picks become `<folder>/rl-video-episode-<i>.mp4` when they end (gymnasium's RecordVideo would need moviepy).
+    Rendering only reads the simulation: observations, rewards and every RNG stream of training are the same
+    with and without it."""
 
     PARTIAL = ".recording.mp4"  # the episode being recorded; renamed when it ends
 
