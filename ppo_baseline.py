@@ -1227,9 +1227,11 @@ class EvaluationRunner:
 def make_render_env(env_id: str) -> gym.Env:
     """An env that renders rgb arrays, or a one-line error naming the GL backends to try."""
     try:
-        env = gym.make(env_id, render_mode="rgb_array")
-        env.reset(seed=0)
-        env.render()
+        with warnings.catch_warnings():  # e.g. glfw's about a missing display, before it fails
+            warnings.simplefilter("ignore")
+            env = gym.make(env_id, render_mode="rgb_array")
+            env.reset(seed=0)
+            env.render()
         return env
     except Exception as exc:  # no usable OpenGL backend: say so instead of a long traceback
         first_line = (str(exc).splitlines() or [""])[0][:160]
