@@ -481,8 +481,8 @@ def start_wandb(args: Args, run_name: str, run_dir: str, run_id: str | None) -> 
 
     # The run folder is TensorBoard's root: no prefix on the names, and wandb need not wait 10 s to guess it.
     wandb.tensorboard.patch(root_logdir=run_dir)
-    timeout = float(os.environ.get("WANDB_INIT_TIMEOUT", 30))  # wandb's default, 90 s, looks like a hang
     try:
+        timeout = float(os.environ.get("WANDB_INIT_TIMEOUT", 20))  # wandb's default, 90 s, looks like a hang
         run = wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, group=args.wandb_group,
                          sync_tensorboard=True, config=asdict(args), name=run_name, monitor_gym=True,
                          save_code=True, id=run_id, resume="must" if run_id else None,
