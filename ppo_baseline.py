@@ -957,6 +957,8 @@ class RunLog:
         from torch.utils.tensorboard import SummaryWriter
 
         self.args, self.envs, self.obs_dim, self.act_dim = args, envs, obs_dim, act_dim
+        if args.capture_video:  # no OpenGL backend: one line now, not a traceback later. Not before the
+            make_render_env(args.env_id).close()  # --num-envs workers are forked: they would inherit its state, and hang
         batch_size = args.num_envs * args.num_steps
         if args.total_timesteps % batch_size and checkpoint is None:
             updates = args.total_timesteps // batch_size
@@ -1447,8 +1449,6 @@ def validate(args: Args) -> None:
     if not isinstance(action_space, gym.spaces.Box):
         fail(f"{args.env_id} has a {type(action_space).__name__} action space; this script needs a Box "
              "(continuous) one: use cascade_ppo_discrete.py")
-    if args.capture_video:
-        make_render_env(args.env_id).close()  # no OpenGL backend: one line now, not a traceback later
 
 
 def seed_everything(seed: int, torch_deterministic: bool) -> None:

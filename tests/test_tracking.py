@@ -175,15 +175,16 @@ def test_resume_continues_the_same_wandb_run(tracked, tmp_path):
 
 def test_capture_video_records_training_and_changes_nothing(tmp_path):
     """The issue's "done when" for the flagship: --track --capture-video offline gives the W&B run with our
-    scalars and the videos; the nets equal those of a run without either."""
-    settings = {**TINY, "env_id": VIDEO_ENV}
+    scalars and the videos; the nets equal those of a run without either. With --num-envs 2 the recording env
+    is a forked worker (it hung when this process had rendered before the fork)."""
+    settings = {**TINY, "env_id": VIDEO_ENV, "num_envs": 2}
     proc = run("cascade_ppo_continuous.py", tmp_path, *cli(settings), "--track", "--capture-video",
                env=with_gl(tmp_path))
     skip_without_gl(proc)
     (run_dir,) = glob.glob(os.path.join(tmp_path, "runs", "*"))
     videos = sorted(os.listdir(tmp_path / "videos" / os.path.basename(run_dir)),
                     key=lambda name: int(name.split("-")[-1][:-4]))
-    assert videos[:5] == [f"rl-video-episode-{i}.mp4" for i in (0, 1, 8, 27, 64)], videos  # CleanRL's trigger
+    assert videos[:3] == [f"rl-video-episode-{i}.mp4" for i in (0, 1, 8)], videos  # CleanRL's trigger
     assert all(open(tmp_path / "videos" / os.path.basename(run_dir) / v, "rb").read(12)[4:8] == b"ftyp" for v in videos)
     (offline,) = offline_runs(tmp_path)
     rows = history(wandb_records(offline))
