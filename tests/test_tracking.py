@@ -283,3 +283,16 @@ def test_sweep_passes_track_in_one_group(tmp_path):
     assert sorted(os.listdir(tmp_path / "my_sweep" / "done")) == sorted(
         f"{r.run_id}.json" for r in sweep.expand(sweep.Args(command=[template], envs=["InvertedPendulum-v4"],
                                                             seeds=["1", "2"])))
+
+
+def test_plots_ignore_the_tracking_flags(capsys):
+    """Seeds of one experiment, some tracked (or from before --track existed), are one experiment to the plots."""
+    from plots import common
+
+    base = {"n": "6", "k": "1000000", "capture_video": "False"}
+    runs = [common.Run("a", "Hopper-v4", "cascade", 1, 0, {**base}),
+            common.Run("b", "Hopper-v4", "cascade", 2, 0, {**base, "track": "True", "wandb_project_name": "cascade",
+                                                           "wandb_entity": "me", "wandb_group": "sweep"}),
+            common.Run("c", "Hopper-v4", "cascade", 3, 0, {**base, "capture_video": "True", "track": "False"})]
+    common.warn_if_settings_differ(("Hopper-v4", "cascade"), runs, [])
+    assert capsys.readouterr().err == ""
