@@ -1229,8 +1229,8 @@ class RunLog:
         from torch.utils.tensorboard import SummaryWriter
 
         self.args, self.envs, self.obs_dim, self.act_dim = args, envs, obs_dim, act_dim
-        if args.capture_video:  # no OpenGL backend: one line now, not a traceback later. Not before the
-            make_render_env(args.env_id).close()  # --num-envs workers are forked: they would inherit its state, and hang
+        if args.capture_video:  # here, once the --num-envs workers exist: forked after a render, they hang
+            make_render_env(args.env_id).close()  # no OpenGL backend: one line now, not a traceback later
         batch_size = args.num_envs * args.num_steps
         if args.k % batch_size and checkpoint is None:
             print(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
