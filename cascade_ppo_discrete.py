@@ -215,7 +215,7 @@ def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool, index
     the --capture-video recorder under them all). `normalize` is already resolved (see `resolve`)."""
 
     def thunk() -> gym.Env:
-        env = gym.make(env_id, render_mode="rgb_array" if video else None)
+        env = gym.make(env_id, render_mode="rgb_array") if video else gym.make(env_id)
         if video:
             env = TrainingVideo(env)
         env = gym.wrappers.RecordEpisodeStatistics(env)  # raw, unnormalized returns

@@ -165,7 +165,7 @@ def make_env(env_id: str, index: int = 0, video: bool = False) -> Callable[[], g
     with `video`, the --capture-video recorder under them."""
 
     def thunk() -> gym.Env:
-        env = gym.make(env_id, render_mode="rgb_array" if video else None)
+        env = gym.make(env_id, render_mode="rgb_array") if video else gym.make(env_id)
         if video:
             env = TrainingVideo(env)
         env = gym.wrappers.RecordEpisodeStatistics(env)

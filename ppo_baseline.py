@@ -719,7 +719,7 @@ def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0, video: 
         if multiprocessing.current_process().name != "MainProcess":  # a --num-envs worker: stops are for training
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the training process's handler it was forked with
-        env = gym.make(env_id, render_mode="rgb_array" if video else None)
+        env = gym.make(env_id, render_mode="rgb_array") if video else gym.make(env_id)
         if video:
             env = TrainingVideo(env)
         env = gym.wrappers.RecordEpisodeStatistics(env)  # raw, unnormalized returns
