@@ -64,7 +64,17 @@ class Args:
     cuda: bool = False
     """use CUDA if available (small nets are usually faster on the CPU)"""
     track_dir: str = "runs"
-    """folder under which the run folder `runs/<run_name>` is created"""
+    """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
+    track: bool = False
+    """also log to Weights & Biases (CleanRL's --track): every TensorBoard scalar under its name, the args, this script, the videos; WANDB_MODE=offline logs locally"""
+    wandb_project_name: str = "cascade"
+    """the W&B project (with --track)"""
+    wandb_entity: str | None = None
+    """the W&B entity, a user or team (with --track; default: your default entity)"""
+    wandb_group: str | None = None
+    """the W&B group of the run (with --track; sweep.py gives the runs of one sweep one group)"""
+    capture_video: bool = False
+    """mp4s of training episodes 0, 1, 8, 27, ..., 1000, 2000, ... of the first env in videos/<run_name>/ (to W&B with --track). MuJoCo needs MUJOCO_GL=egl or osmesa"""
 
     # Environment
     env_id: str = "Hopper-v4"
@@ -199,13 +209,17 @@ class DiscretizeAction(gym.ActionWrapper):
         return self.corners[int(action)].copy()
 
 
-def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool, index: int = 0) -> Callable[[], gym.Env]:
+def make_env(env_id: str, gamma: float, discretize: bool, normalize: bool, index: int = 0,
+             video: bool = False) -> Callable[[], gym.Env]:
     """Per env: raw episode stats and, for discretized Box tasks, the 2^A discretization, the obs/reward
     normalization of the continuous scripts (the paper's code's default) and the clipping to +-10, under the
-    outermost `RunState`. `normalize` is already resolved (see `resolve`)."""
+    outermost `RunState` (and with `video`, the --capture-video recorder under them all). `normalize` is already
+    resolved (see `resolve`)."""
 
     def thunk() -> gym.Env:
-        env = gym.make(env_id)
+        env = gym.make(env_id, render_mode="rgb_array") if video else gym.make(env_id)
+        if video:
+            env = TrainingVideo(env)
         env = gym.wrappers.RecordEpisodeStatistics(env)  # raw, unnormalized returns
         if discretize:  # a MuJoCo-like Box task, wrapped as the paper's code wraps it
             env = DiscretizeAction(env)  # corners lie inside the box: no ClipAction needed
@@ -227,7 +241,8 @@ def make_vector_env(args: Args, discretize: bool, normalize: bool) -> gym.vector
     # SAME_STEP: the obs returned on a done step is already the reset one, so every stored
     # transition is real (the default NEXT_STEP mode inserts a fake step after each episode).
     return gym.vector.SyncVectorEnv(
-        [make_env(args.env_id, args.gamma, discretize, normalize, i) for i in range(args.num_envs)],
+        [make_env(args.env_id, args.gamma, discretize, normalize, i, video=args.capture_video and i == 0)
+         for i in range(args.num_envs)],
         autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
     )
 
@@ -281,7 +296,93 @@ class RunState(gym.Wrapper):
                 break
             layer = layer.env
         if state["sim"] is not None:
-            layer.data = pickle.loads(state["sim"])
+            import mujoco
+
+            # into the env's own MjData, which its renderer (--capture-video) holds on to
+            mujoco.mj_copyData(layer.data, layer.model, pickle.loads(state["sim"]))
+        recorder = find_wrapper(self.env, TrainingVideo)
+        if recorder is not None:  # the killed run's video of this episode is lost; the next trigger records again
+            recorder.stop(keep=False)
+
+    def record_videos_to(self, folder: str) -> None:
+        """--capture-video: where the first env writes its videos, known once the run has its name."""
+        recorder = find_wrapper(self.env, TrainingVideo)
+        if recorder is not None:
+            recorder.folder = folder
+
+
+def capped_cubic_video_schedule(episode_id: int) -> bool:
+    """CleanRL's video trigger (the default of gymnasium's RecordVideo): episodes 0, 1, 8, 27, ..., 729, 1000, 2000, ..."""
+    if episode_id < 1000:
+        return round(episode_id ** (1 / 3)) ** 3 == episode_id
+    return episode_id % 1000 == 0
+
+
+class TrainingVideo(gym.Wrapper):
+    """--capture-video, CleanRL's training videos: the episodes of this env that `capped_cubic_video_schedule`
+    picks become `<folder>/rl-video-episode-<i>.mp4` when they end (gymnasium's RecordVideo would need moviepy).
+    Rendering only reads the simulation: observations, rewards and every RNG stream of training are the same
+    with and without it."""
+
+    PARTIAL = ".recording.mp4"  # the episode being recorded; renamed when it ends
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.folder: str | None = None
+        self.episode_id = -1  # an int, so checkpoints keep it: a resumed run continues the numbering
+        self.writer = None  # the open mp4 while an episode is recorded
+
+    def reset(self, **kwargs):
+        obs, info = super().reset(**kwargs)
+        self.stop(keep=True)  # the recorded episode has ended
+        self.episode_id += 1
+        if self.folder is not None and capped_cubic_video_schedule(self.episode_id):
+            import imageio.v2 as imageio  # with imageio-ffmpeg (requirements.txt) for mp4
+
+            os.makedirs(self.folder, exist_ok=True)
+            self.writer = imageio.get_writer(os.path.join(self.folder, self.PARTIAL),
+                                             fps=self.metadata.get("render_fps", 30))
+            self.writer.append_data(self.env.render())
+        return obs, info
+
+    def step(self, action):
+        result = super().step(action)
+        if self.writer is not None:
+            self.writer.append_data(self.env.render())
+        return result
+
+    def stop(self, keep: bool) -> None:
+        """Close the video being written: keep it as its episode's mp4, or drop it (an unfinished episode)."""
+        if self.writer is None:
+            return
+        self.writer.close()
+        self.writer = None
+        partial = os.path.join(self.folder, self.PARTIAL)
+        if keep:
+            os.replace(partial, os.path.join(self.folder, f"rl-video-episode-{self.episode_id}.mp4"))
+        else:
+            os.remove(partial)
+
+    def close(self) -> None:
+        self.stop(keep=False)  # the episode running at the end of training is not whole
+        super().close()
+
+
+def make_render_env(env_id: str) -> gym.Env:
+    """An env that renders rgb arrays, or a one-line error naming the GL backends to try."""
+    try:
+        with warnings.catch_warnings():  # e.g. glfw's about a missing display, before it fails
+            warnings.simplefilter("ignore")
+            env = gym.make(env_id, render_mode="rgb_array")
+            env.reset(seed=0)
+            env.render()
+        return env
+    except Exception as exc:  # no usable OpenGL backend: say so instead of a long traceback
+        first_line = (str(exc).splitlines() or [""])[0][:160]
+        if isinstance(exc, gym.error.DependencyNotInstalled):  # e.g. pygame for the classic-control envs
+            fail(f"cannot render {env_id}: {first_line}")
+        fail(f"cannot render {env_id} with MUJOCO_GL={os.environ.get('MUJOCO_GL', '(unset)')} "
+             f"({type(exc).__name__}: {first_line}); try MUJOCO_GL=egl, or MUJOCO_GL=osmesa with libosmesa installed")
 
 
 def wrapper_depth(env: gym.Env) -> int:
@@ -503,6 +604,72 @@ class Evaluator:
 
 
 # ----------------------------------------------------------------------------------------------
+# Weights & Biases (--track), CleanRL's way: it mirrors the TensorBoard logs; wandb is imported only then
+# ----------------------------------------------------------------------------------------------
+VIDEO_ROOT = "videos"  # --capture-video writes videos/<run_name>/ in the working directory, as CleanRL
+NO_WANDB = "or set WANDB_MODE=offline to log locally and `wandb sync` later"
+
+
+def check_wandb() -> None:
+    """--track before anything is created: wandb installed and, unless offline, logged in (wandb itself would
+    prompt for a key, which in a sweep or a batch job waits forever)."""
+    try:
+        import wandb
+    except ImportError:
+        fail("--track needs wandb: pip install -r requirements.txt")
+    if wandb.setup().settings.mode in ("offline", "dryrun", "disabled"):
+        return
+    if not wandb.login(prompt=False, verify=False):
+        fail(f"--track: no W&B login found; run `wandb login` (or set WANDB_API_KEY), {NO_WANDB}")
+
+
+def start_wandb(args: Args, run_name: str, run_dir: str, run_id: str | None) -> str:
+    """wandb.init as CleanRL calls it, before the SummaryWriter is made so that every scalar reaches W&B under
+    its TensorBoard name; `run_id` continues a resumed run's W&B run. Returns the W&B run's id."""
+    import wandb
+
+    # The run folder is TensorBoard's root: no prefix on the names, and wandb need not wait 10 s to guess it.
+    wandb.tensorboard.patch(root_logdir=run_dir)
+    try:
+        timeout = float(os.environ.get("WANDB_INIT_TIMEOUT", 20))  # wandb's default, 90 s, looks like a hang
+        run = wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, group=args.wandb_group,
+                         sync_tensorboard=True, config=asdict(args), name=run_name, monitor_gym=True,
+                         save_code=True, id=run_id, resume="must" if run_id else None,
+                         settings=wandb.Settings(init_timeout=timeout))
+    except Exception as exc:  # no answer from the server, a wrong entity, a run id it does not know, ...
+        wandb.tensorboard.unpatch()
+        first_line = (str(exc).splitlines() or [""])[0][:200]
+        fail(f"--track: cannot start the W&B run ({type(exc).__name__}: {first_line}); check `wandb login` and "
+             f"the network, {NO_WANDB}")
+    return run.id
+
+
+def finished_videos(folder: str | None) -> set[str]:
+    return set(glob.glob(os.path.join(glob.escape(folder), "rl-video-episode-*.mp4"))) if folder else set()
+
+
+def log_new_videos(folder: str | None, sent: set[str], global_step: int) -> None:
+    """--track --capture-video: each finished training video goes to W&B once, under CleanRL's key `videos`
+    (the recording env may live in a --num-envs worker, so its folder is watched from here)."""
+    if folder is None:
+        return
+    import wandb
+
+    for path in sorted(finished_videos(folder) - sent, key=os.path.getmtime):
+        wandb.log({"videos": wandb.Video(path, format="mp4"), "global_step": global_step})
+        sent.add(path)
+
+
+def finish_wandb(exit_code: int) -> None:
+    """End the W&B run --track started, if one is open: 0 at the end of training, non-zero after an error or a
+    stop (W&B marks the run failed)."""
+    wandb = sys.modules.get("wandb")  # never imported without --track
+    if wandb is not None and wandb.run is not None:
+        wandb.finish(exit_code=exit_code)
+        wandb.tensorboard.unpatch()
+
+
+# ----------------------------------------------------------------------------------------------
 # Checkpoints: one file with everything needed to continue and to act
 # ----------------------------------------------------------------------------------------------
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -627,6 +794,8 @@ def check_run_settings(args: Args) -> None:
     if args.num_minibatches < 1 or args.update_epochs < 1:
         fail(f"--num-minibatches and --update-epochs must be at least 1 (got {args.num_minibatches}, {args.update_epochs})")
     check_track_dir(args.track_dir)
+    if args.track:
+        check_wandb()
 
 
 def check_track_dir(track_dir: str) -> None:
@@ -670,6 +839,8 @@ def resolve(args: Args) -> tuple[bool, bool]:
     probe.close()
     if not isinstance(observation_space, gym.spaces.Box):
         fail(f"{args.env_id} has a {type(observation_space).__name__} observation space; this script needs a Box one")
+    if args.capture_video:
+        make_render_env(args.env_id).close()  # no renderer (OpenGL backend, pygame): one line now, not a traceback later
     if isinstance(action_space, gym.spaces.Discrete):
         if args.discretize == "on":
             fail(f"--discretize on needs a Box action space, but {args.env_id} is already discrete "
@@ -733,19 +904,28 @@ def train(args: Args, checkpoint: dict | None = None,
     from torch.utils.tensorboard import SummaryWriter
 
     if checkpoint is None:
-        run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
-        run_dir = os.path.join(args.track_dir, run_name)
+        run_dir = os.path.join(args.track_dir, f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")
+    else:
+        run_dir = os.path.dirname(checkpoint["path"])
+        repair_iteration_files(run_dir, checkpoint, at_iteration_end=checkpoint["updates_done"] == updates_per_iteration)
+    run_name = os.path.basename(run_dir)
+    # kept through an untracked resume, so that a later --track continues the same W&B run
+    wandb_run_id = None if checkpoint is None else checkpoint.get("wandb_run_id")
+    if args.track:  # before the SummaryWriter: W&B mirrors the TensorBoard logs of writers made after it
+        wandb_run_id = start_wandb(args, run_name, run_dir, wandb_run_id)
+    if checkpoint is None:
         writer = SummaryWriter(run_dir)
         writer.add_text(
             "hyperparameters",
             "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
         )
-    else:
-        run_dir = os.path.dirname(checkpoint["path"])
-        repair_iteration_files(run_dir, checkpoint, at_iteration_end=checkpoint["updates_done"] == updates_per_iteration)
-        # purge_step hides whatever the killed run logged after its last checkpoint
+    else:  # purge_step hides whatever the killed run logged after its last checkpoint
         writer = SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1)
     checkpoint_path = os.path.join(run_dir, CHECKPOINT_NAME)
+    video_folder = os.path.join(VIDEO_ROOT, run_name) if args.capture_video else None
+    if video_folder is not None:
+        envs.call("record_videos_to", video_folder)
+    videos_sent = finished_videos(video_folder)  # a resumed run's earlier ones went to W&B already
 
     actor = CascadeActor(obs_dim, num_actions, args.hidden_size, args.num_layers, args.fallback_init).to(device)
     if args.start_full:
@@ -786,6 +966,7 @@ def train(args: Args, checkpoint: dict | None = None,
             "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
             "obs_stats": obs_statistics(envs), "env_states": envs.call("get_state"),
             "next_obs": next_obs.cpu(), "next_done": next_done.cpu(), "rng": rng_states(), "eval_calls": eval_calls,
+            "wandb_run_id": wandb_run_id,
         }
 
     if checkpoint is None:
@@ -977,6 +1158,8 @@ def train(args: Args, checkpoint: dict | None = None,
             sps = int(global_step / (time.time() - start_time))
             writer.add_scalar("charts/SPS", sps, global_step)
             writer.add_scalar("cascade/size", size, global_step)
+            if args.track:
+                log_new_videos(video_folder, videos_sent, global_step)
 
             # --- non-finite guard: stop before anything bad is written to the checkpoint ---
             if not math.isfinite(loss.item()) or not all(torch.isfinite(p).all() for p in params):
@@ -1000,6 +1183,9 @@ def train(args: Args, checkpoint: dict | None = None,
         evaluator.close()
     envs.close()
     writer.close()
+    if args.track:
+        log_new_videos(video_folder, videos_sent, global_step)
+        finish_wandb(exit_code=0)
     return {"actor": actor, "critic": critic, "run_dir": run_dir, "global_step": global_step}
 
 
@@ -1007,7 +1193,8 @@ def train(args: Args, checkpoint: dict | None = None,
 # Command line: train, resume, or evaluate a saved model
 # ----------------------------------------------------------------------------------------------
 # Settings a resumed run may change; every other flag must match the checkpoint.
-RESUME_OVERRIDABLE = {"resume", "quiet", "checkpoint_every", "torch_threads", "cuda"}
+RESUME_OVERRIDABLE = {"resume", "quiet", "checkpoint_every", "torch_threads", "cuda", "track", "wandb_project_name",
+                      "wandb_entity", "wandb_group"}
 
 
 def explicit_fields(argv: list[str]) -> set[str]:
@@ -1095,8 +1282,11 @@ def main() -> None:
     started = time.time()
     try:
         train(args, checkpoint)
-    except KeyboardInterrupt:
-        stopped(args, checkpoint, started)
+    except BaseException as exc:
+        finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
+        if isinstance(exc, KeyboardInterrupt):
+            stopped(args, checkpoint, started)
+        raise
 
 
 if __name__ == "__main__":

@@ -62,7 +62,17 @@ class Args:
     cuda: bool = False
     """use CUDA if available (small nets are usually faster on the CPU)"""
     track_dir: str = "runs"
-    """folder under which the run folder `runs/<run_name>` is created"""
+    """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
+    track: bool = False
+    """also log to Weights & Biases (CleanRL's --track): every TensorBoard scalar under its name, the args, this script, the videos; WANDB_MODE=offline logs locally"""
+    wandb_project_name: str = "cascade"
+    """the W&B project (with --track)"""
+    wandb_entity: str | None = None
+    """the W&B entity, a user or team (with --track; default: your default entity)"""
+    wandb_group: str | None = None
+    """the W&B group of the run (with --track; sweep.py gives the runs of one sweep one group)"""
+    capture_video: bool = False
+    """mp4s of training episodes 0, 1, 8, 27, ..., 1000, 2000, ... of the first env in videos/<run_name>/ (to W&B with --track); with --evaluate: one episode next to the checkpoint. Needs MUJOCO_GL=egl or osmesa"""
     autograd: bool = False
     """act through the torch forward and update with autograd, no fast paths (slower; same results up to rounding)"""
 
@@ -129,8 +139,6 @@ class Args:
     """evaluate a saved model (`runs/<run_name>` or a checkpoint file) for --eval-episodes episodes and exit"""
     deterministic: bool = False
     """with --evaluate: act with the mean action instead of sampling"""
-    capture_video: bool = False
-    """with --evaluate: write an mp4 of one episode next to the checkpoint (needs MUJOCO_GL=egl or osmesa)"""
     quiet: bool = False
     """no progress display"""
 
@@ -705,14 +713,17 @@ def check_env_id(env_id: str) -> None:
         fail(f"unknown env id '{env_id}'.{hint} (see gymnasium's registry, e.g. Ant-v4, Hopper-v5)")
 
 
-def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0) -> Callable[[], gym.Env]:
-    """CleanRL's wrapper stack, per env: raw episode stats, action clip, obs/reward normalization, +-10 clips."""
+def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0, video: bool = False) -> Callable[[], gym.Env]:
+    """CleanRL's wrapper stack, per env: raw episode stats, action clip, obs/reward normalization, +-10 clips
+    (and with `video`, the --capture-video recorder under them all)."""
 
     def thunk() -> gym.Env:
         if multiprocessing.current_process().name != "MainProcess":  # a --num-envs worker: stops are for training
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the training process's handler it was forked with
-        env = gym.make(env_id)
+        env = gym.make(env_id, render_mode="rgb_array") if video else gym.make(env_id)
+        if video:
+            env = TrainingVideo(env)
         env = gym.wrappers.RecordEpisodeStatistics(env)  # raw, unnormalized returns
         env = gym.wrappers.ClipAction(env)
         if normalize:
@@ -729,7 +740,8 @@ def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0) -> Call
 
 def make_vector_env(args: Args) -> gym.vector.VectorEnv:
     """One env in this process, or --num-envs > 1 envs stepped in parallel worker processes."""
-    fns = [make_env(args.env_id, args.gamma, args.normalize, i) for i in range(args.num_envs)]
+    fns = [make_env(args.env_id, args.gamma, args.normalize, i, video=args.capture_video and i == 0)
+           for i in range(args.num_envs)]
     # SAME_STEP: the obs returned on a done step is already the reset one, so every stored
     # transition is real (the default NEXT_STEP mode inserts a fake step after each episode).
     mode = gym.vector.AutoresetMode.SAME_STEP
@@ -787,7 +799,76 @@ class RunState(gym.Wrapper):
                 break
             layer = layer.env
         if state["sim"] is not None:
-            layer.data = pickle.loads(state["sim"])
+            import mujoco
+
+            # into the env's own MjData, which its renderer (--capture-video) holds on to
+            mujoco.mj_copyData(layer.data, layer.model, pickle.loads(state["sim"]))
+        recorder = find_wrapper(self.env, TrainingVideo)
+        if recorder is not None:  # the killed run's video of this episode is lost; the next trigger records again
+            recorder.stop(keep=False)
+
+    def record_videos_to(self, folder: str) -> None:
+        """--capture-video: where the first env writes its videos, known once the run has its name."""
+        recorder = find_wrapper(self.env, TrainingVideo)
+        if recorder is not None:
+            recorder.folder = folder
+
+
+def capped_cubic_video_schedule(episode_id: int) -> bool:
+    """CleanRL's video trigger (the default of gymnasium's RecordVideo): episodes 0, 1, 8, 27, ..., 729, 1000, 2000, ..."""
+    if episode_id < 1000:
+        return round(episode_id ** (1 / 3)) ** 3 == episode_id
+    return episode_id % 1000 == 0
+
+
+class TrainingVideo(gym.Wrapper):
+    """--capture-video, CleanRL's training videos: the episodes of this env that `capped_cubic_video_schedule`
+    picks become `<folder>/rl-video-episode-<i>.mp4` when they end (gymnasium's RecordVideo would need moviepy).
+    Rendering only reads the simulation: observations, rewards and every RNG stream of training are the same
+    with and without it."""
+
+    PARTIAL = ".recording.mp4"  # the episode being recorded; renamed when it ends
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.folder: str | None = None
+        self.episode_id = -1  # an int, so checkpoints keep it: a resumed run continues the numbering
+        self.writer = None  # the open mp4 while an episode is recorded
+
+    def reset(self, **kwargs):
+        obs, info = super().reset(**kwargs)
+        self.stop(keep=True)  # the recorded episode has ended
+        self.episode_id += 1
+        if self.folder is not None and capped_cubic_video_schedule(self.episode_id):
+            import imageio.v2 as imageio  # with imageio-ffmpeg (requirements.txt) for mp4
+
+            os.makedirs(self.folder, exist_ok=True)
+            self.writer = imageio.get_writer(os.path.join(self.folder, self.PARTIAL),
+                                             fps=self.metadata.get("render_fps", 30))
+            self.writer.append_data(self.env.render())
+        return obs, info
+
+    def step(self, action):
+        result = super().step(action)
+        if self.writer is not None:
+            self.writer.append_data(self.env.render())
+        return result
+
+    def stop(self, keep: bool) -> None:
+        """Close the video being written: keep it as its episode's mp4, or drop it (an unfinished episode)."""
+        if self.writer is None:
+            return
+        self.writer.close()
+        self.writer = None
+        partial = os.path.join(self.folder, self.PARTIAL)
+        if keep:
+            os.replace(partial, os.path.join(self.folder, f"rl-video-episode-{self.episode_id}.mp4"))
+        else:
+            os.remove(partial)
+
+    def close(self) -> None:
+        self.stop(keep=False)  # the episode running at the end of training is not whole
+        super().close()
 
 
 def wrapper_depth(env: gym.Env) -> int:
@@ -813,6 +894,72 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None) 
 
 
 # ----------------------------------------------------------------------------------------------
+# Weights & Biases (--track), CleanRL's way: it mirrors the TensorBoard logs; wandb is imported only then
+# ----------------------------------------------------------------------------------------------
+VIDEO_ROOT = "videos"  # --capture-video writes videos/<run_name>/ in the working directory, as CleanRL
+NO_WANDB = "or set WANDB_MODE=offline to log locally and `wandb sync` later"
+
+
+def check_wandb() -> None:
+    """--track before anything is created: wandb installed and, unless offline, logged in (wandb itself would
+    prompt for a key, which in a sweep or a batch job waits forever)."""
+    try:
+        import wandb
+    except ImportError:
+        fail("--track needs wandb: pip install -r requirements.txt")
+    if wandb.setup().settings.mode in ("offline", "dryrun", "disabled"):
+        return
+    if not wandb.login(prompt=False, verify=False):
+        fail(f"--track: no W&B login found; run `wandb login` (or set WANDB_API_KEY), {NO_WANDB}")
+
+
+def start_wandb(args: Args, run_name: str, run_dir: str, run_id: str | None) -> str:
+    """wandb.init as CleanRL calls it, before the SummaryWriter is made so that every scalar reaches W&B under
+    its TensorBoard name; `run_id` continues a resumed run's W&B run. Returns the W&B run's id."""
+    import wandb
+
+    # The run folder is TensorBoard's root: no prefix on the names, and wandb need not wait 10 s to guess it.
+    wandb.tensorboard.patch(root_logdir=run_dir)
+    try:
+        timeout = float(os.environ.get("WANDB_INIT_TIMEOUT", 20))  # wandb's default, 90 s, looks like a hang
+        run = wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, group=args.wandb_group,
+                         sync_tensorboard=True, config=asdict(args), name=run_name, monitor_gym=True,
+                         save_code=True, id=run_id, resume="must" if run_id else None,
+                         settings=wandb.Settings(init_timeout=timeout))
+    except Exception as exc:  # no answer from the server, a wrong entity, a run id it does not know, ...
+        wandb.tensorboard.unpatch()
+        first_line = (str(exc).splitlines() or [""])[0][:200]
+        fail(f"--track: cannot start the W&B run ({type(exc).__name__}: {first_line}); check `wandb login` and "
+             f"the network, {NO_WANDB}")
+    return run.id
+
+
+def finished_videos(folder: str | None) -> set[str]:
+    return set(glob.glob(os.path.join(glob.escape(folder), "rl-video-episode-*.mp4"))) if folder else set()
+
+
+def log_new_videos(folder: str | None, sent: set[str], global_step: int) -> None:
+    """--track --capture-video: each finished training video goes to W&B once, under CleanRL's key `videos`
+    (the recording env may live in a --num-envs worker, so its folder is watched from here)."""
+    if folder is None:
+        return
+    import wandb
+
+    for path in sorted(finished_videos(folder) - sent, key=os.path.getmtime):
+        wandb.log({"videos": wandb.Video(path, format="mp4"), "global_step": global_step})
+        sent.add(path)
+
+
+def finish_wandb(exit_code: int) -> None:
+    """End the W&B run --track started, if one is open: 0 at the end of training, non-zero after an error or a
+    stop (W&B marks the run failed)."""
+    wandb = sys.modules.get("wandb")  # never imported without --track
+    if wandb is not None and wandb.run is not None:
+        wandb.finish(exit_code=exit_code)
+        wandb.tensorboard.unpatch()
+
+
+# ----------------------------------------------------------------------------------------------
 # The run's bookkeeping: TensorBoard, evaluations, checkpoints and resume, progress
 # ----------------------------------------------------------------------------------------------
 class RunLog:
@@ -823,23 +970,34 @@ class RunLog:
         from torch.utils.tensorboard import SummaryWriter
 
         self.args, self.envs, self.obs_dim, self.act_dim = args, envs, obs_dim, act_dim
+        if args.capture_video:  # here, once the --num-envs workers exist: forked after a render, they hang
+            make_render_env(args.env_id).close()  # no OpenGL backend: one line now, not a traceback later
         batch_size = args.num_envs * args.num_steps
         if args.total_timesteps % batch_size and checkpoint is None:
             updates = args.total_timesteps // batch_size
             print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
                   f"the run does {updates} updates = {updates * batch_size} steps")
         if checkpoint is None:
-            run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
-            self.run_dir = os.path.join(args.track_dir, run_name)
+            self.run_dir = os.path.join(args.track_dir, f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")
+        else:
+            self.run_dir = os.path.dirname(checkpoint["path"])
+        run_name = os.path.basename(self.run_dir)
+        # kept through an untracked resume, so that a later --track continues the same W&B run
+        self.wandb_run_id = None if checkpoint is None else checkpoint.get("wandb_run_id")
+        if args.track:
+            self.wandb_run_id = start_wandb(args, run_name, self.run_dir, self.wandb_run_id)
+        if checkpoint is None:
             self.writer = SummaryWriter(self.run_dir)
             self.writer.add_text(
                 "hyperparameters",
                 "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
             )
-        else:
-            self.run_dir = os.path.dirname(checkpoint["path"])
-            # purge_step hides whatever the killed run logged after its last checkpoint
+        else:  # purge_step hides whatever the killed run logged after its last checkpoint
             self.writer = SummaryWriter(self.run_dir, purge_step=checkpoint["global_step"] + 1)
+        self.video_folder = os.path.join(VIDEO_ROOT, run_name) if args.capture_video else None
+        if self.video_folder is not None:
+            envs.call("record_videos_to", self.video_folder)
+        self.videos_sent = finished_videos(self.video_folder)  # a resumed run's earlier ones went to W&B already
         self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT_NAME)
         self.runner = None
         if args.eval_every:
@@ -901,6 +1059,8 @@ class RunLog:
         write("charts/fast_acting", float(fast.acting), global_step)
         write("charts/fast_gradients", float(fast.gradients), global_step)
         write("charts/fast_path_check_seconds", fast.check_seconds, global_step)
+        if self.args.track:
+            log_new_videos(self.video_folder, self.videos_sent, global_step)
         self.progress.update(global_step, sps)
 
     def fast_path_off(self, message: str, step: int) -> None:
@@ -949,7 +1109,7 @@ class RunLog:
             "actor": actor.state_dict(), "critic": critic.state_dict(), "optimizer": optimizer.state_dict(),
             "obs_stats": obs_statistics(self.envs), "env_states": self.envs.call("get_state"),
             "next_obs": next_obs.copy(), "next_done": next_done.copy(), "rng": rng_states(),
-            "eval_calls": 0 if self.runner is None else self.runner.calls,
+            "eval_calls": 0 if self.runner is None else self.runner.calls, "wandb_run_id": self.wandb_run_id,
         })
         self.last_checkpoint_step = global_step
 
@@ -960,6 +1120,9 @@ class RunLog:
             self.log_evaluations(wait=True)
             self.runner.close()
         self.writer.close()
+        if self.args.track:
+            log_new_videos(self.video_folder, self.videos_sent, global_step)
+            finish_wandb(exit_code=0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1079,12 +1242,16 @@ class EvaluationRunner:
 def make_render_env(env_id: str) -> gym.Env:
     """An env that renders rgb arrays, or a one-line error naming the GL backends to try."""
     try:
-        env = gym.make(env_id, render_mode="rgb_array")
-        env.reset(seed=0)
-        env.render()
+        with warnings.catch_warnings():  # e.g. glfw's about a missing display, before it fails
+            warnings.simplefilter("ignore")
+            env = gym.make(env_id, render_mode="rgb_array")
+            env.reset(seed=0)
+            env.render()
         return env
     except Exception as exc:  # no usable OpenGL backend: say so instead of a long traceback
         first_line = (str(exc).splitlines() or [""])[0][:160]
+        if isinstance(exc, gym.error.DependencyNotInstalled):  # e.g. pygame for the classic-control envs
+            fail(f"cannot render {env_id}: {first_line}")
         fail(f"cannot render {env_id} with MUJOCO_GL={os.environ.get('MUJOCO_GL', '(unset)')} "
              f"({type(exc).__name__}: {first_line}); try MUJOCO_GL=egl, or MUJOCO_GL=osmesa with libosmesa installed")
 
@@ -1243,6 +1410,8 @@ def check_run_settings(args: Args) -> None:
     if args.num_minibatches < 1 or args.update_epochs < 1:
         fail(f"--num-minibatches and --update-epochs must be at least 1 (got {args.num_minibatches}, {args.update_epochs})")
     check_track_dir(args.track_dir)
+    if args.track:
+        check_wandb()
 
 
 def check_track_dir(track_dir: str) -> None:
@@ -1318,7 +1487,8 @@ def set_rng_states(states: dict) -> None:
 # Command line: train, resume, or evaluate a saved model
 # ----------------------------------------------------------------------------------------------
 # Settings a resumed run may change; every other flag must match the checkpoint.
-RESUME_OVERRIDABLE = {"resume", "quiet", "checkpoint_every", "torch_threads", "cuda"}
+RESUME_OVERRIDABLE = {"resume", "quiet", "checkpoint_every", "torch_threads", "cuda", "track", "wandb_project_name",
+                      "wandb_entity", "wandb_group"}
 
 
 def explicit_fields(argv: list[str]) -> set[str]:
@@ -1414,8 +1584,11 @@ def main() -> None:
     started = time.time()
     try:
         train(args, checkpoint)
-    except KeyboardInterrupt:
-        stopped(args, checkpoint, started)
+    except BaseException as exc:
+        finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
+        if isinstance(exc, KeyboardInterrupt):
+            stopped(args, checkpoint, started)
+        raise
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 A sweep expands presets and/or command templates over env ids and seeds into runs, and executes
 each run as a subprocess of one of our scripts (`--env-id`, `--seed`, `--exp-name`, `--track-dir`
-added), with its log in `<sweep-dir>/logs/`. A run's identity is its full command: its folder is
+added; with --track, the W&B flags: one group per sweep), with its log in `<sweep-dir>/logs/`. A run's
+identity is its full command (tracking aside): its folder is
 `<sweep-dir>/runs/<env>__<label>__<seed>__<hash of the command>/`, and a run that exits 0 gets a
 completion marker `<sweep-dir>/done/<same name>.json` (written last). Re-running a sweep skips marked
 runs and restarts the others, resuming from their own checkpoint when one exists; a re-run with other
@@ -67,6 +68,14 @@ class Args:
     """print the presets and exit"""
     status_every: float = 30.0
     """seconds between progress lines"""
+    track: bool = False
+    """log every run to Weights & Biases too (the scripts' --track), the runs of this sweep in one W&B group; not part of a run's identity, so a re-run with it resumes the unfinished runs"""
+    wandb_project_name: str = "cascade"
+    """the W&B project of the runs (with --track)"""
+    wandb_entity: str | None = None
+    """the W&B entity of the runs (with --track; default: your default entity)"""
+    wandb_group: str | None = None
+    """the W&B group of the runs (with --track; default: the sweep folder's name)"""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -156,11 +165,11 @@ class Run:
         return {"run_id": self.run_id, "setup_hash": self.setup_hash, "script": self.script, "flags": self.flags,
                 "env_id": self.env_id, "seed": self.seed}
 
-    def fresh_command(self, python: str, track_dir: str) -> list[str]:
+    def fresh_command(self, python: str, track_dir: str, tracking: list[str]) -> list[str]:
         return [python, os.path.join(ROOT, self.script), *self.flags, "--env-id", self.env_id, "--seed",
-                str(self.seed), "--exp-name", self.label, "--track-dir", track_dir, "--quiet"]
+                str(self.seed), "--exp-name", self.label, "--track-dir", track_dir, "--quiet", *tracking]
 
-    def command(self, python: str, runs_dir: str) -> list[str]:
+    def command(self, python: str, runs_dir: str, tracking: list[str] = ()) -> list[str]:
         """The fresh run's command, or a resume of its latest checkpoint when one exists.
 
         Each setup logs into its own folder `<runs_dir>/<run_id>/`, so a checkpoint is only ever
@@ -168,11 +177,35 @@ class Run:
         script itself refuses a checkpoint whose saved settings differ."""
         track_dir = os.path.join(runs_dir, self.run_id)
         checkpoints = sorted(glob.glob(os.path.join(track_dir, "*", "checkpoint.pt")), key=os.path.getmtime)
-        command = self.fresh_command(python, track_dir)
+        command = self.fresh_command(python, track_dir, list(tracking))
         if checkpoints:
             at = command.index("--track-dir")  # the resumed run continues in its own folder
             return [*command[:2], "--resume", os.path.dirname(checkpoints[-1]), *command[2:at], *command[at + 2 :]]
         return command
+
+
+def tracking_flags(args: Args, sweep_dir: str) -> list[str]:
+    """--track for every run, all in one W&B group; added after the identity flags, so it never changes a
+    run's setup hash (tracking does not change what a run computes)."""
+    if not args.track:
+        return []
+    flags = ["--track", "--wandb-project-name", args.wandb_project_name,
+             "--wandb-group", args.wandb_group or os.path.basename(sweep_dir)]
+    return flags + (["--wandb-entity", args.wandb_entity] if args.wandb_entity else [])
+
+
+def check_wandb() -> None:
+    """--track: the check every run makes at its start, once here, so that a missing login is one line and not a
+    failed sweep (on a cluster every node needs the login too)."""
+    try:
+        import wandb
+    except ImportError:
+        fail("--track needs wandb: pip install -r requirements.txt")
+    if wandb.setup().settings.mode in ("offline", "dryrun", "disabled"):
+        return
+    if not wandb.login(prompt=False, verify=False):
+        fail("--track: no W&B login found; run `wandb login` (or set WANDB_API_KEY), or set WANDB_MODE=offline "
+             "to log locally and `wandb sync` later")
 
 
 def scale_flags(flags: list[str], scale: float) -> list[str]:
@@ -389,14 +422,15 @@ def main() -> None:
     sweep_dir = args.sweep_dir or os.path.join("sweeps", "_".join(args.preset) or "custom")
     sweep_dir = os.path.abspath(sweep_dir)
     track_dir = os.path.join(sweep_dir, "runs")
+    tracking = tracking_flags(args, sweep_dir)
     todo, skipped = [], 0
     for run in runs:
         marker = os.path.join(sweep_dir, "done", f"{run.run_id}.json")
         if os.path.exists(marker):
             skipped += 1
             continue
-        todo.append((run, run.command(args.python, track_dir), os.path.join(sweep_dir, "logs", f"{run.run_id}.log"),
-                     marker))
+        todo.append((run, run.command(args.python, track_dir, tracking),
+                     os.path.join(sweep_dir, "logs", f"{run.run_id}.log"), marker))
     if args.dry_run:
         for _, command, _, _ in todo:
             print(shlex.join(command))
@@ -405,6 +439,8 @@ def main() -> None:
     missing = sorted({run.script for run, *_ in todo if not os.path.isfile(os.path.join(ROOT, run.script))})
     if missing:
         fail(f"script(s) not found in {ROOT}: {', '.join(missing)}")
+    if args.track and todo:
+        check_wandb()
     print(f"[sweep] {len(runs)} runs in {sweep_dir}: {skipped} already finished, {len(todo)} to run "
           f"({args.backend} backend)", flush=True)
     parallel = args.workers if args.backend == "local" else len(todo)

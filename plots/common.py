@@ -38,6 +38,7 @@ DEFAULT_LABELS = {
 NOT_SETTINGS = {
     "seed", "exp_name", "track_dir", "quiet", "torch_threads", "torch_deterministic", "cuda", "resume",
     "evaluate", "deterministic", "members", "capture_video", "checkpoint_every", "eval_in_worker",
+    "track", "wandb_project_name", "wandb_entity", "wandb_group",
 }
 
 
