@@ -1299,16 +1299,6 @@ def save_checkpoint(path: str, payload: dict) -> None:
     os.replace(tmp, path)
 
 
-def atomic_copy(source: str, path: str) -> None:
-    """Copy `source` to `path` as `save_checkpoint` writes: temp file, fsync, rename."""
-    tmp = f"{path}.tmp"
-    with write_failures(path, tmp), open(source, "rb") as src, open(tmp, "wb") as dst:
-        shutil.copyfileobj(src, dst)
-        dst.flush()
-        os.fsync(dst.fileno())
-    os.replace(tmp, path)
-
-
 @contextlib.contextmanager
 def write_failures(path: str, tmp: str):
     """Turn a failed write of `tmp` into one line naming the cause, after removing `tmp` (a full disk would stay
