@@ -1087,12 +1087,10 @@ def train(args: Args, checkpoint: dict | None = None,
             target_actor = copy.deepcopy(actor)
         else:  # the target actor keeps its nets and gets the new one with the online net's very init
             target_actor.add_base_net(actor.add_base_net())
-        if args.reset_critic and iteration > 1:
-            qf = make_critic()
-            qf_target = copy.deepcopy(qf)
-            q_optimizer = make_adam(list(qf.parameters()), args.learning_rate, args.adam_eps)
-        elif args.restart_on_new_net and iteration > 1:
-            qf_target = copy.deepcopy(qf)
+        if iteration > 1 and (args.reset_critic or args.restart_on_new_net):
+            if args.reset_critic:  # the ablation: a fresh critic
+                qf = make_critic()
+            qf_target = copy.deepcopy(qf)  # a target copied anew from the (kept or fresh) critic
             q_optimizer = make_adam(list(qf.parameters()), args.learning_rate, args.adam_eps)
         if not args.keep_buffer:
             buffer.clear()

@@ -1090,13 +1090,11 @@ def train(args: Args, checkpoint: dict | None = None,
     for iteration in range(start_iteration, args.n + 1):
         # --- a new Cascade iteration: new base net, emptied buffer, kept critics, fresh actor optimizer ---
         actor.add_base_net()
-        if args.reset_critic and iteration > 1:
-            qf = QNetworks(obs_dim, act_dim).to(device)
-            qf_target = copy.deepcopy(qf)
-            q_optimizer = make_adam(list(qf.parameters()), args.q_lr)
-        elif args.restart_on_new_net and iteration > 1:
-            # the paper's code starts a new SAC instance per net: same critics, targets copied from them anew,
-            # a new critic optimizer
+        if iteration > 1 and (args.reset_critic or args.restart_on_new_net):
+            if args.reset_critic:  # the ablation: fresh critics
+                qf = QNetworks(obs_dim, act_dim).to(device)
+            # targets copied anew from the (kept or fresh) critics, a new critic optimizer: the paper's code starts
+            # a new SAC instance per net
             qf_target = copy.deepcopy(qf)
             q_optimizer = make_adam(list(qf.parameters()), args.q_lr)
         if not args.keep_buffer:
