@@ -26,8 +26,9 @@ drew for net i+1 (the checkpoint is written right before training adds the next 
 --freeze-previous runs only the new net is trained, as in training.
 
 table2: per env and experiment, the parameter count (last `cascade/parameters`, actor + critic, or
-`charts/parameters` for PPO) and the wall time from the first to the last logged event (a resumed run's
-downtime is included), mean ± std over seeds.
+`charts/parameters` for PPO) and the training time, mean ± std over seeds: for a run exported to results/,
+the time its final checkpoint recorded (a killed run's downtime excluded); for a raw run folder, the wall time
+from its first to its last logged event (a resumed run's downtime included).
 """
 
 from __future__ import annotations
@@ -380,8 +381,9 @@ def table2(args: Table2) -> list[str]:
     pivot_rows = [[env, *(pivot[env].get(lab, ("–", "–"))[0] for lab in labels),
                    *(pivot[env].get(lab, ("–", "–"))[1] for lab in labels)] for env in selection.envs]
     text = ("## Table 2: parameters (actor + critic) and runtime\n\n"
-            "Runtime: wall time from a run's first to its last logged event (evaluation included; a resumed run's "
-            "downtime too), mean ± std over seeds.\n\n"
+            "Runtime: training time with evaluation, mean ± std over seeds. For an exported run (results/per_run) it is "
+            "the time its final checkpoint recorded, without the downtime of a resumed run; for a run folder, the "
+            "wall time from its first to its last logged event, downtime included.\n\n"
             + common.markdown_table(["Env", *(f"Parameters {lab}" for lab in labels),
                                      *(f"Runtime {lab}" for lab in labels)], pivot_rows)
             + "\n" + common.markdown_table(["env", "experiment", "seeds", "steps", "parameters", "runtime",
