@@ -313,7 +313,8 @@ class Tracker:
         eta = "?"
         if self.durations:
             left = (pending + self.running) * (sum(self.durations) / len(self.durations)) / self.parallel
-            eta = time.strftime("%H:%M:%S", time.gmtime(left))
+            # A duration, not a clock time; it can pass 24 h. A resumed run's duration counts only its last part.
+            eta = f"about {int(left // 3600)} h {int(left % 3600 // 60):02d} min left"
         print(f"[sweep] {self.done} done, {self.running} {self.running_label}, {len(self.failed)} failed, {pending} pending "
               f"of {self.total} | ETA {eta}", flush=True)
 

@@ -176,3 +176,11 @@ def test_ray_sweep_on_a_real_local_head(tmp_path):
         assert len(os.listdir(tmp_path / "done")) == 2 and len(os.listdir(tmp_path / "runs")) == 2
     finally:
         subprocess.run([ray_bin, "stop", "--force"], capture_output=True, env=env, timeout=120)
+
+
+def test_progress_eta_is_a_duration_that_can_pass_a_day(capsys):
+    tracker = sweep.Tracker(total=5, parallel=1, every=0)
+    run = sweep.expand(sweep.Args(preset=["reproduce"], envs=["Hopper-v4"], seeds=["1"]))[0]
+    tracker.started()
+    tracker.finished(run, 0, "log", seconds=7 * 3600 + 5 * 60)  # 4 runs left at 7 h 05 min each: 28 h 20 min
+    assert "ETA about 28 h 20 min left" in capsys.readouterr().out
