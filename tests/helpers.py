@@ -1,6 +1,7 @@
 import contextlib
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -15,6 +16,12 @@ def run_script(script, *args, timeout=600, env=None):
         [sys.executable, os.path.join(ROOT, script), *map(str, args)],
         capture_output=True, text=True, timeout=timeout, cwd=ROOT, env={**os.environ, **(env or {})},
     )
+
+
+def ctrl_c_reaches_child() -> None:
+    """Popen preexec_fn: Ctrl-C interrupts the child as it would from a terminal, even when the tests were
+    started with SIGINT ignored (a background job, nohup), which a child process would otherwise inherit."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def read_scalars(run_dir):

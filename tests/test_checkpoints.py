@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import cascade_ppo_continuous as cpc
-from helpers import ROOT, copy_checkpoint_when, error_line, read_scalars, resume_from, run_script
+from helpers import ROOT, copy_checkpoint_when, ctrl_c_reaches_child, error_line, read_scalars, resume_from, run_script
 
 BASE = dict(env_id="Hopper-v4", n=2, k=1024, num_steps=256, num_minibatches=4, update_epochs=2,
             eval_every=512, eval_episodes=2, quiet=True)
@@ -280,7 +280,7 @@ def test_stopping_a_run_is_one_line(script, extra, signum, tmp_path):
     if "sac" not in script:
         flags += ["--checkpoint-every", "2048"]
     proc = subprocess.Popen([sys.executable, os.path.join(ROOT, script), *flags], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=ROOT, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, start_new_session=True, preexec_fn=ctrl_c_reaches_child)
     deadline = time.time() + 120
     while time.time() < deadline and not any(
             os.path.exists(os.path.join(tmp_path, d, "checkpoint.pt")) for d in os.listdir(tmp_path)):

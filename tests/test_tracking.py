@@ -16,7 +16,7 @@ import torch
 import cascade_ppo_continuous as cpc
 import cascade_sac as cs
 import sweep
-from helpers import ROOT, error_line, read_scalars
+from helpers import ROOT, ctrl_c_reaches_child, error_line, read_scalars
 
 pytest.importorskip("wandb")
 
@@ -229,7 +229,7 @@ def test_a_stopped_run_finishes_its_wandb_run_as_failed(tmp_path):
     flags = [*cli({**TINY, "k": 65536, "checkpoint_every": 2048}), "--track"]
     proc = subprocess.Popen([sys.executable, os.path.join(ROOT, "cascade_ppo_continuous.py"), *flags], text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path, env=offline_env(tmp_path),
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=ctrl_c_reaches_child)
     deadline = time.time() + 120
     while time.time() < deadline and not glob.glob(os.path.join(tmp_path, "runs", "*", "checkpoint.pt")):
         time.sleep(0.2)
