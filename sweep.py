@@ -35,6 +35,8 @@ from typing import Literal
 
 import tyro
 
+from cascade_plumbing.tracking import duration
+
 ROOT = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -314,7 +316,7 @@ class Tracker:
         if self.durations:
             left = (pending + self.running) * (sum(self.durations) / len(self.durations)) / self.parallel
             # A duration, not a clock time; it can pass 24 h. A resumed run's duration counts only its last part.
-            eta = f"about {int(left // 3600)} h {int(left % 3600 // 60):02d} min left"
+            eta = duration(left)
         print(f"[sweep] {self.done} done, {self.running} {self.running_label}, {len(self.failed)} failed, {pending} pending "
               f"of {self.total} | ETA {eta}", flush=True)
 

@@ -1,0 +1,18 @@
+"""What the training scripts share and is not the algorithm (the CleanRL `cleanrl_utils` idea).
+
+Each script at the top level of the repository defines its own method: `Args`, the nets, the loss,
+the training loop and what is evaluated. Everything else lives here, once:
+
+- `errors`: the one-line error (`fail`);
+- `envs`: env construction, the wrappers that save and restore an env's state, training videos;
+- `tracking`: Weights & Biases (`--track`), the progress line;
+- `checkpoints`: atomic checkpoint files, their repair and loading;
+- `evaluation`: the worker process that runs evaluations beside training;
+- `runs`: seeding and RNG state, run names, resume, stop signals, the command-line entry point;
+- `replay`: the replay buffer of the off-policy scripts;
+- `fast`: optimizer and check helpers of the scripts' fast paths (the paths themselves stay in the scripts,
+  next to the definitions they are checked against).
+
+A copy of a script in the repository root imports this package as is; a copy elsewhere needs
+`pip install -e <repository>` once.
+"""

@@ -1,0 +1,114 @@
+"""Checkpoints: one file holds everything a run needs to continue and to act. Every write is atomic (temp file,
+fsync, rename), so a kill or a full disk never leaves a damaged checkpoint in place of a good one."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import glob
+import os
+import shutil
+import sys
+import zipfile
+
+import torch
+
+from .errors import fail
+
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+def save_checkpoint(path: str, payload: dict) -> None:
+    """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then).
+    A failed write (a full disk, most often) removes the temp file and stops the run in one line."""
+    tmp = f"{path}.tmp"
+    with write_failures(path, tmp), open(tmp, "wb") as f:
+        torch.save(payload, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_copy(source: str, path: str) -> None:
+    """Copy `source` to `path` as `save_checkpoint` writes: temp file, fsync, rename."""
+    tmp = f"{path}.tmp"
+    with write_failures(path, tmp), open(source, "rb") as src, open(tmp, "wb") as dst:
+        shutil.copyfileobj(src, dst)
+        dst.flush()
+        os.fsync(dst.fileno())
+    os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def write_failures(path: str, tmp: str):
+    """Turn a failed write of `tmp` into one line naming the cause, after removing `tmp` (a full disk would stay
+    full otherwise); the file at `path` is untouched. torch.save reports a full disk as a RuntimeError."""
+    try:
+        yield
+    except (OSError, RuntimeError) as exc:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        folder = os.path.dirname(os.path.abspath(path))
+        full = getattr(exc, "errno", None) == errno.ENOSPC or shutil.disk_usage(folder).free < 1 << 20
+        previous = f"the previous {os.path.basename(path)} is intact" if os.path.exists(path) else \
+            f"no earlier {os.path.basename(path)} exists"
+        if full:
+            fail(f"no space left on {folder}; {previous}; free some space and continue with --resume {folder}")
+        fail(f"cannot write {tmp} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); {previous}; "
+             f"fix that and continue with --resume {folder}")
+    except BaseException:  # stopped mid-write (Ctrl-C, SIGTERM): no partial file is left behind either
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+def non_finite_advice(checkpoint_path: str) -> str:
+    """What the non-finite guard's line says about the checkpoint it kept, and what to change."""
+    remedy = "start a new run with a lower --learning-rate (or another --seed)"
+    if not os.path.exists(checkpoint_path):
+        return f"no checkpoint was written yet; {remedy}"
+    return (f"the last good checkpoint {checkpoint_path} is intact, but resuming it repeats the same updates exactly "
+            f"and diverges again; {remedy}")
+
+
+def repair_iteration_files(run_dir: str, checkpoint: dict, at_iteration_end: bool) -> None:
+    """On resume: every finished iteration's iteration_<i>.pt should be there and readable (plots/analyze.py reads
+    them). One that a kill left missing or truncated is rebuilt from the checkpoint when that holds the same state
+    (the end of that iteration); otherwise the run says in one line that it cannot be rebuilt."""
+    for stale in glob.glob(os.path.join(glob.escape(run_dir), "*.pt.tmp")):
+        os.remove(stale)  # a write the kill interrupted
+    finished = checkpoint["iteration"] if at_iteration_end else checkpoint["iteration"] - 1
+    for i in range(1, finished + 1):
+        path = os.path.join(run_dir, f"iteration_{i}.pt")
+        if os.path.isfile(path) and zipfile.is_zipfile(path):  # torch.save writes a zip archive: truncated ones fail
+            continue
+        if i == checkpoint["iteration"] and at_iteration_end:
+            atomic_copy(checkpoint["path"], path)
+            print(f"note: rebuilt {path} from {checkpoint['path']} (the same state: the end of iteration {i})")
+        else:
+            print(f"note: {path} is missing or damaged and cannot be rebuilt (the run has moved past iteration {i}); "
+                  "analyses of that iteration (plots/analyze.py) are unavailable for this run", file=sys.stderr)
+
+
+def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "") -> dict:
+    """Load `runs/<run>` (its latest checkpoint) or a checkpoint file; one-line error if missing, corrupt, of
+    another script, or of another version of this one (`checkpoint_format` is "<script>/<version>";
+    `older_note` says what changed since an older version)."""
+    if os.path.isdir(path):
+        path = os.path.join(path, CHECKPOINT_NAME)
+    if not os.path.isfile(path):
+        fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file")
+    try:
+        # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
+    script = checkpoint_format.split("/")[0]
+    saved = str(checkpoint.get("format", "")) if isinstance(checkpoint, dict) else ""
+    if saved.startswith(f"{script}/") and saved != checkpoint_format:
+        fail(f"{path} was written by an older {script}.py ({saved}{older_note}); it cannot be resumed or evaluated "
+             "exactly: start a new run")
+    if saved != checkpoint_format:
+        fail(f"{path} is not a {script} checkpoint")
+    checkpoint["path"] = path
+    return checkpoint

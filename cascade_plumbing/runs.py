@@ -1,0 +1,170 @@
+"""A run's life outside its algorithm: seeding and RNG state, run names, input checks every script shares,
+resume, stop signals, and the command-line entry point."""
+
+from __future__ import annotations
+
+import glob
+import os
+import random
+import signal
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+import tyro
+
+from .checkpoints import CHECKPOINT_NAME
+from .errors import fail
+from .tracking import check_wandb, finish_wandb
+
+
+def check_track_dir(track_dir: str) -> None:
+    """Run folders can be created under `track_dir` (probed in its nearest existing ancestor, nothing left behind)."""
+    if os.path.exists(track_dir) and not os.path.isdir(track_dir):
+        fail(f"--track-dir {track_dir} is a file, not a folder; pass a folder for the run folders")
+    ancestor = os.path.abspath(track_dir)
+    while not os.path.exists(ancestor):
+        ancestor = os.path.dirname(ancestor)
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=ancestor))
+    except OSError as exc:
+        fail(f"cannot create run folders under --track-dir {track_dir} ({exc.strerror or exc} in {ancestor}); "
+             "pass a writable folder")
+
+
+def seed_everything(seed: int, torch_deterministic: bool) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    torch.backends.cudnn.deterministic = torch_deterministic
+
+
+def rng_states() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def set_rng_states(states: dict) -> None:
+    torch.set_rng_state(states["torch"])
+    np.random.set_state(states["numpy"])
+    random.setstate(states["python"])
+
+
+# Settings a resumed run may change; every other flag must match the checkpoint.
+RESUME_OVERRIDABLE = {"resume", "quiet", "checkpoint_every", "torch_threads", "cuda", "track", "wandb_project_name",
+                      "wandb_entity", "wandb_group"}
+
+
+def explicit_fields(args_type: type, argv: list[str]) -> set[str]:
+    """Names of the `args_type` fields given on the command line (`--env-id X`, `--no-normalize`, ...)."""
+    names = set(args_type.__dataclass_fields__)
+    given = set()
+    for token in argv:
+        if not token.startswith("--"):
+            continue
+        name = token[2:].split("=")[0].replace("-", "_")
+        if name not in names and name.startswith("no_") and name[3:] in names:
+            name = name[3:]
+        if name in names:
+            given.add(name)
+    return given
+
+
+def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
+    """The checkpoint's settings; a conflicting flag on the command line is an error."""
+    saved = type(args)(**checkpoint["args"])
+    for name in sorted(given - RESUME_OVERRIDABLE):
+        if getattr(args, name) != getattr(saved, name):
+            fail(f"--{name.replace('_', '-')} {getattr(args, name)} differs from the checkpoint's "
+                 f"{getattr(saved, name)}; a resumed run keeps its settings (drop the flag)")
+    for name in given & RESUME_OVERRIDABLE:
+        setattr(saved, name, getattr(args, name))
+    return saved
+
+
+def stop_signal(signum, frame) -> None:
+    """SIGTERM stops a run as Ctrl-C does (the exit code tells them apart)."""
+    STOPPED_BY.append(signum)
+    raise KeyboardInterrupt
+
+
+STOPPED_BY: list[int] = []
+
+
+def stopped(args: Any, checkpoint: dict | None, started: float) -> None:
+    """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM)."""
+    if checkpoint is not None:
+        run_dir = os.path.dirname(checkpoint["path"])
+    else:  # this run's folder: the newest of its name, made since it started
+        pattern = os.path.join(glob.escape(args.track_dir), f"{glob.escape(args.env_id)}__{glob.escape(args.exp_name)}__{args.seed}__*")
+        mine = [d for d in glob.glob(pattern) if int(d.rsplit("__", 1)[1]) >= int(started)]
+        run_dir = max(mine, key=os.path.getmtime) if mine else None
+    signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
+    name = signal.Signals(signum).name
+    script = os.path.basename(sys.argv[0])
+    if run_dir is not None and os.path.exists(os.path.join(run_dir, CHECKPOINT_NAME)):
+        where = f"the last checkpoint is {os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}"
+    else:
+        where = "no checkpoint was written yet, so there is nothing to resume"
+    print(f"\rstopped by {name}: {where}", file=sys.stderr, flush=True)
+    sys.exit(128 + signum)
+
+
+def run_name(args: Any) -> str:
+    """CleanRL's run name, `<env_id>__<exp_name>__<seed>__<unix time>`: the run's folder under --track-dir."""
+    return f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+
+
+def script_name(file: str) -> str:
+    """The default --exp-name: the script's file name without .py (CleanRL's), so a copy's runs are its own."""
+    return os.path.basename(file)[: -len(".py")] if file.endswith(".py") else os.path.basename(file)
+
+
+def check_common_settings(args: Any) -> None:
+    """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left)."""
+    if args.seed < 0:
+        fail(f"--seed must be a non-negative integer (got {args.seed}); numpy and gymnasium refuse negative seeds")
+    if args.torch_threads < 1:
+        fail(f"--torch-threads must be at least 1 (got {args.torch_threads})")
+    if getattr(args, "checkpoint_every", 0) < 0:
+        fail(f"--checkpoint-every must be >= 0 (0: only the checkpoints a run always writes; got {args.checkpoint_every})")
+    check_track_dir(args.track_dir)
+    if args.track:
+        check_wandb()
+
+
+def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate_saved: Callable[[Any], Any],
+             load_checkpoint: Callable[[str], dict], finished: Callable[[Any, dict], bool], description: str) -> None:
+    """The command line of a training script: train, --resume a killed run, or --evaluate a saved model.
+
+    A stop (Ctrl-C, SIGTERM) ends with one line saying where the last checkpoint is (exit 130 / 143); a run
+    that has finished its work is not stopped any more (its checkpoint is final), and resuming a finished run
+    does nothing."""
+    args = tyro.cli(args_type, description=description)
+    if args.evaluate:
+        evaluate_saved(args)
+        return
+    checkpoint = None
+    if args.resume:
+        checkpoint = load_checkpoint(args.resume)
+        args = resumed_args(args, checkpoint, explicit_fields(args_type, sys.argv[1:]))
+        if finished(args, checkpoint):
+            print(f"{checkpoint['path']} is the end of the run (global_step={checkpoint['global_step']}); "
+                  "nothing to resume")
+            return
+    signal.signal(signal.SIGTERM, stop_signal)
+    started = time.time()
+    try:
+        train(args, checkpoint)
+    except BaseException as exc:
+        finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
+        if isinstance(exc, KeyboardInterrupt):
+            stopped(args, checkpoint, started)
+        raise
+    # The work is done and saved: a stop from here on must not turn a finished run into a failed one (at
+    # interpreter exit Python resets its own handlers to the default, which would die by the signal silently).
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)

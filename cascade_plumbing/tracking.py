@@ -1,0 +1,110 @@
+"""Weights & Biases (--track) the CleanRL way, mirroring the TensorBoard logs; and the progress line.
+wandb is imported only with --track."""
+
+from __future__ import annotations
+
+import glob
+import os
+import sys
+import time
+from dataclasses import asdict
+from typing import Any
+
+from .errors import fail
+
+VIDEO_ROOT = "videos"  # --capture-video writes videos/<run_name>/ in the working directory, as CleanRL
+
+
+NO_WANDB = "or set WANDB_MODE=offline to log locally and `wandb sync` later"
+
+
+def check_wandb() -> None:
+    """--track before anything is created: wandb installed and, unless offline, logged in (wandb itself would
+    prompt for a key, which in a sweep or a batch job waits forever)."""
+    try:
+        import wandb
+    except ImportError:
+        fail("--track needs wandb: pip install -r requirements.txt")
+    if wandb.setup().settings.mode in ("offline", "dryrun", "disabled"):
+        return
+    if not wandb.login(prompt=False, verify=False):
+        fail(f"--track: no W&B login found; run `wandb login` (or set WANDB_API_KEY), {NO_WANDB}")
+
+
+def start_wandb(args: Any, run_name: str, run_dir: str, run_id: str | None) -> str:
+    """wandb.init as CleanRL calls it, before the SummaryWriter is made so that every scalar reaches W&B under
+    its TensorBoard name; `run_id` continues a resumed run's W&B run. Returns the W&B run's id."""
+    import wandb
+
+    # The run folder is TensorBoard's root: no prefix on the names, and wandb need not wait 10 s to guess it.
+    wandb.tensorboard.patch(root_logdir=run_dir)
+    try:
+        timeout = float(os.environ.get("WANDB_INIT_TIMEOUT", 20))  # wandb's default, 90 s, looks like a hang
+        run = wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, group=args.wandb_group,
+                         sync_tensorboard=True, config=asdict(args), name=run_name, monitor_gym=True,
+                         save_code=True, id=run_id, resume="must" if run_id else None,
+                         settings=wandb.Settings(init_timeout=timeout))
+    except Exception as exc:  # no answer from the server, a wrong entity, a run id it does not know, ...
+        wandb.tensorboard.unpatch()
+        first_line = (str(exc).splitlines() or [""])[0][:200]
+        fail(f"--track: cannot start the W&B run ({type(exc).__name__}: {first_line}); check `wandb login` and "
+             f"the network, {NO_WANDB}")
+    return run.id
+
+
+def finished_videos(folder: str | None) -> set[str]:
+    return set(glob.glob(os.path.join(glob.escape(folder), "rl-video-episode-*.mp4"))) if folder else set()
+
+
+def log_new_videos(folder: str | None, sent: set[str], global_step: int) -> None:
+    """--track --capture-video: each finished training video goes to W&B once, under CleanRL's key `videos`
+    (the recording env may live in a --num-envs worker, so its folder is watched from here)."""
+    if folder is None:
+        return
+    import wandb
+
+    for path in sorted(finished_videos(folder) - sent, key=os.path.getmtime):
+        wandb.log({"videos": wandb.Video(path, format="mp4"), "global_step": global_step})
+        sent.add(path)
+
+
+def finish_wandb(exit_code: int) -> None:
+    """End the W&B run --track started, if one is open: 0 at the end of training, non-zero after an error or a
+    stop (W&B marks the run failed)."""
+    wandb = sys.modules.get("wandb")  # never imported without --track
+    if wandb is not None and wandb.run is not None:
+        wandb.finish(exit_code=exit_code)
+        wandb.tensorboard.unpatch()
+
+
+class Progress:
+    """One self-updating line on a terminal; plain lines every `interval` seconds otherwise."""
+
+    def __init__(self, total_steps: int, quiet: bool, interval: float = 30.0):
+        self.total, self.quiet, self.interval = total_steps, quiet, interval
+        self.tty = sys.stdout.isatty()
+        self.last_print = 0.0
+        self.last_eval: float | None = None
+        self.note = ""  # e.g. that a fast path was switched off
+
+    def update(self, step: int, sps: float, size: int, force: bool = False) -> None:
+        now = time.time()
+        if self.quiet or (not force and now - self.last_print < (0.5 if self.tty else self.interval)):
+            return
+        self.last_print = now
+        eta = (self.total - step) / max(sps, 1e-9)
+        ev = "-" if self.last_eval is None else f"{self.last_eval:.1f}"
+        line = (f"{step:>10,}/{self.total:,} steps ({100 * step / self.total:5.1f}%) | {sps:6.0f} SPS | "
+                f"{size} net(s) | eval {ev} | ETA {duration(eta)}{self.note}")
+        print(f"\r{line}" if self.tty else line, end="" if self.tty else "\n", flush=True)
+
+    def message(self, text: str) -> None:
+        """A normal line that does not garble the progress line."""
+        if self.quiet:
+            return
+        print(f"\r\033[K{text}" if self.tty else text, flush=True)
+
+
+def duration(seconds: float) -> str:
+    """A time left as a duration, e.g. 'about 28 h 20 min left' (a clock time HH:MM:SS would wrap after 24 h)."""
+    return f"about {int(seconds // 3600)} h {int(seconds % 3600 // 60):02d} min left"
