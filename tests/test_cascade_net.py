@@ -1,20 +1,13 @@
-"""The Cascade net's math against a plain loop over the nets, parameter counts, gradients."""
+"""The Cascade net's math against a plain loop over the nets, gradients (parameter counts: test_method.py)."""
 
 import math
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 import cascade_ppo_continuous as cpc
 import ppo_baseline
-
-# Paper, Table 2 (v4 envs): actor of n=6 nets + critic, and the 64-64 PPO baseline.
-TABLE2_CASCADE = {"Ant-v4": 11286, "Walker2d-v4": 9470, "Hopper-v4": 8186, "Humanoid-v4": 68098,
-                  "HalfCheetah-v4": 9470}
-TABLE2_PPO = {"Ant-v4": 12497, "Walker2d-v4": 11085, "Hopper-v4": 10119, "Humanoid-v4": 57763,
-              "HalfCheetah-v4": 11085}
 
 
 def make_actor(n, obs_dim=5, act_dim=3, hidden=7, layers=2, fallback_init=0.5, randomize=True, seed=0):
@@ -164,22 +157,6 @@ def test_freeze_previous_trains_only_the_newest(path):
         rows = 3 - first  # rows of this parameter that belong to nets 1..3
         torch.testing.assert_close(p.detach()[:rows], frozen[name][:rows], rtol=0, atol=0)
         assert not torch.equal(p.detach()[rows:], frozen[name][rows:])
-
-
-def env_dims(env_id):
-    env = gym.make(env_id)
-    return env.observation_space.shape[0], env.action_space.shape[0]
-
-
-@pytest.mark.parametrize("env_id", sorted(TABLE2_CASCADE))
-def test_parameter_counts_match_table2(env_id):
-    obs_dim, act_dim = env_dims(env_id)
-    actor = cpc.CascadeActor(obs_dim, act_dim, 16, 2, 0.5)
-    for _ in range(6):
-        actor.add_base_net()
-    assert cpc.count_parameters(actor, cpc.make_critic(obs_dim)) == TABLE2_CASCADE[env_id]
-    baseline = ppo_baseline.Actor(obs_dim, act_dim, 64)
-    assert ppo_baseline.count_parameters(baseline, ppo_baseline.make_critic(obs_dim)) == TABLE2_PPO[env_id]
 
 
 def test_gaussian_entropy_matches_torch_normal():
