@@ -21,6 +21,9 @@ CHECKPOINT_NAME = "checkpoint.pt"
 def save_checkpoint(path: str, payload: dict) -> None:
     """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then).
     A failed write (a full disk, most often) removes the temp file and stops the run in one line."""
+    from .runs import saving  # (runs imports this module)
+
+    saving(path, payload)  # the run's final checkpoint: a stop from now on lets the run finish
     tmp = f"{path}.tmp"
     with write_failures(path, tmp), open(tmp, "wb") as f:
         torch.save(payload, f)
@@ -62,9 +65,13 @@ def write_failures(path: str, tmp: str):
         raise
 
 
-def non_finite_advice(checkpoint_path: str) -> str:
-    """What the non-finite guard's line says about the checkpoint it kept, and what to change."""
-    remedy = "start a new run with a lower --learning-rate (or another --seed)"
+def non_finite_advice(checkpoint_path: str, rates: str = "--learning-rate") -> str:
+    """What the non-finite guard's line says about the checkpoint it kept, and what to change (`rates`: the
+    script's learning-rate flags, e.g. "--policy-lr / --q-lr")."""
+    # The guard does not know the cause: an edit of the algorithm that makes NaN/inf (a mean over an empty tensor,
+    # e.g. the fallbacks at n = 1; a log of 0) is as likely as divergence.
+    remedy = (f"if the script was edited, check the edit for NaN/inf (e.g. a mean over an empty tensor); otherwise "
+              f"start a new run with a lower {rates} (or another --seed)")
     if not os.path.exists(checkpoint_path):
         return f"no checkpoint was written yet; {remedy}"
     return (f"the last good checkpoint {checkpoint_path} is intact, but resuming it repeats the same updates exactly "

@@ -235,3 +235,13 @@ def make_vector_env(env_fns: list[Callable[[], gym.Env]]) -> gym.vector.VectorEn
     if len(env_fns) == 1:
         return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=mode)
     return gym.vector.AsyncVectorEnv(env_fns, autoreset_mode=mode)
+
+
+def write_video(frames: list[np.ndarray], path: str, fps: int) -> None:
+    """An mp4 of rendered frames (imageio with imageio-ffmpeg, in requirements.txt)."""
+    import imageio.v2 as imageio
+
+    writer = imageio.get_writer(path, fps=fps)
+    for frame in frames:
+        writer.append_data(frame)
+    writer.close()

@@ -1,11 +1,30 @@
-"""Optimizer and check helpers for the scripts' fast paths: one flat parameter buffer, the fused Adam kernel
-called directly, and the float64 comparison that every fast path must pass against the script's own
-definition while the run trains."""
+"""Fast paths of the PPO scripts: the same acting and the same update as the script's section 1, faster.
+
+A rollout acts 2048 times on one observation, and a PPO minibatch is 64 samples through nets of a few
+thousand weights: per-call overhead, not arithmetic, sets the speed. So acting runs in numpy on copies of
+the weights, and the update's gradients are written out by hand (no autograd graph), into one flat
+parameter buffer stepped by the fused Adam kernel.
+
+Nothing here is a definition. `FastPaths` checks each path against the script's own section 1 while the
+run trains, in float64 so that rounding (~1e-15) and a real difference (an edit: >= 1e-7) are far apart:
+- acting, at every rollout start: the script's `act(actor, obs)` (its forward and its `sample_action`)
+  against the numpy forward plus the numpy Gaussian sampler, both drawing from the same seeded torch RNG;
+- the update, on the first minibatch of every update: the script's `autograd_gradients` (the loss and its
+  gradient by autograd, whatever the script computes there) against the hand-written loss and gradients.
+A path that disagrees, or raises, is switched off for the rest of the run with one warning line, and the
+run continues through section 1, exactly as `--autograd` runs.
+"""
 
 from __future__ import annotations
 
 import copy
+import functools
+import math
+import time
+from collections.abc import Callable
+from typing import Any
 
+import numpy as np
 import torch
 import torch.nn as nn
 
@@ -79,3 +98,394 @@ def float64_copy(module: nn.Module) -> nn.Module:
     for param in twin.parameters():
         param.grad = torch.zeros_like(param)
     return twin
+
+
+def block_diagonal(blocks: torch.Tensor) -> np.ndarray:
+    """[n, r, c] -> the [n*r, n*c] numpy matrix with the blocks on its diagonal (zeros elsewhere)."""
+    return torch.block_diag(*blocks.detach().cpu()).numpy()
+
+
+# At batch size 1 every numpy call costs about a microsecond and the nets' arithmetic is negligible,
+# so this forward is arranged for few, simple calls: the nets sit side by side in one row ([B, n*H];
+# later layers are block-diagonal matrices, plain 2D matmuls), and one head matrix gives every net's
+# mean, its log-std (a bias-only column block) and its fallback logit as the two columns -z, z. The
+# combination is two more matmuls: one maps (softplus(-z) | softplus(z)) to log w_i, repeated over net
+# i's columns, the other sums the weighted columns over the nets. With 6 nets of 16 (the paper's) this
+# takes 9 us per call against 11 for a batched matmul per layer. The block-diagonal matrices grow as
+# (n*H)^2, so past n*H ~ 250 it is slower (6 nets of 64: 18 us against 13).
+def numpy_acting_forward(layers: tuple, head_weight: np.ndarray, head_bias: np.ndarray, spread: np.ndarray,
+                         gather: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """obs [B, obs_dim] -> mean, log-std [B, A] of the ensemble, as `CascadeActor.forward`. The head's columns
+    are, per net, (mean | log-std), then -z_2..-z_n, z_2..z_n; `spread` maps (softplus(-z) | softplus(z)) =
+    (-log l | -log(1 - l)) to log w_i on each of net i's columns, `gather` [n*2A, 2A] sums over the nets."""
+    hidden = obs
+    for weight, bias in layers:
+        hidden = np.tanh(hidden @ weight + bias)  # [B, n*H]: all nets side by side
+    heads = hidden @ head_weight + head_bias
+    per_net = gather.shape[0]  # n*2A columns: (b_i | log-std_i) of every net
+    weight = np.exp(np.logaddexp(0.0, heads[:, per_net:]) @ spread)  # w_i, repeated over net i's columns
+    combined = (weight * heads[:, :per_net]) @ gather  # sum_i w_i (b_i | log-std_i)
+    act_dim = gather.shape[1] // 2
+    return combined[:, :act_dim], combined[:, act_dim:]
+
+
+def numpy_cascade_policy(actor: nn.Module) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """obs [B, obs_dim] (numpy) -> ensemble mean, log-std, as `actor.forward`, computed on numpy copies of
+    the current weights (in their dtype): for acting during a rollout (the copies do not follow updates)."""
+    n, act_dim = actor.size, actor.act_dim
+    if n == 0:  # the empty stack (step-0 evaluation): N(0, 1)
+        return lambda obs: (np.zeros((len(obs), act_dim), np.float32),) * 2
+    mean_weight, mean_bias, fallback_weight, fallback_bias, log_stds = (
+        t.detach().cpu() for t in (actor.mean_weight, actor.mean_bias, actor.fallback_weight, actor.fallback_bias,
+                                   actor.log_std))
+    layers = []
+    for i, (weight, bias) in enumerate(zip(actor.hidden_weights, actor.hidden_biases)):
+        # the first layer reads the shared observation: the nets' weights side by side
+        matrix = torch.cat(list(weight.detach().cpu()), 1).numpy() if i == 0 else block_diagonal(weight)
+        layers.append((matrix, bias.detach().cpu().reshape(1, -1).numpy().copy()))
+    per_net = block_diagonal(torch.cat([mean_weight, torch.zeros_like(mean_weight)], 2))  # (mean | log-std)
+    fallback = block_diagonal(torch.cat([fallback_weight.new_zeros(1, actor.hidden_size, 1), fallback_weight]))[:, 1:]
+    head_weight = np.concatenate([per_net, -fallback, fallback], 1)
+    head_bias = torch.cat([torch.cat([mean_bias[:, 0], log_stds], 1).reshape(-1),
+                           -fallback_bias.reshape(-1), fallback_bias.reshape(-1)]).numpy()[None]
+    # log w = above @ log l + own @ log(1 - l), with above = at-or-above minus own (the diagonal j = i)
+    own = np.eye(n, n - 1, k=-1, dtype=np.float32)
+    above = np.triu(np.ones((n, n - 1), np.float32), -1) - own  # net i reads l_j for j >= i
+    neg_log_contribution = -np.concatenate([above, own], 1).T  # [2(n-1), n]
+    repeat = np.kron(np.eye(n, dtype=np.float32), np.ones((1, 2 * act_dim), np.float32))  # [n, n*2A]
+    gather = np.tile(np.eye(2 * act_dim, dtype=np.float32), (n, 1))  # [n*2A, 2A]
+    return functools.partial(numpy_acting_forward, tuple(layers), head_weight, head_bias,
+                             neg_log_contribution @ repeat, gather)
+
+
+LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
+# g * (1 - h^2) for h = tanh(z): autograd's own kernel for tanh's derivative, one op instead of two
+tanh_backward = torch.ops.aten.tanh_backward
+
+
+def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
+    return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
+
+
+def ppo_loss_gradients(
+    mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor, old_logprob: torch.Tensor,
+    advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor, args: Any,
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`ppo_loss` and its gradient w.r.t. the nets' outputs, written out by hand.
+
+    mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
+    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss, its terms, the log-ratio and ratio.
+    """
+    batch = len(value)
+    # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std
+    inv_std = torch.exp(-log_std)
+    u = (actions - mean) * inv_std
+    u2 = u * u
+    newlogprob = (u2.mul(-0.5) - log_std).sum(1) - LOG_SQRT_2PI * u.shape[1]
+    logratio = newlogprob - old_logprob
+    ratio = logratio.exp()
+    if args.norm_adv:
+        adv_std, adv_mean = torch.std_mean(advantages)
+        advantages = (advantages - adv_mean) / (adv_std + 1e-8)
+
+    # Policy loss mean(max(-A r, -A clip(r, 1-eps, 1+eps))). Its gradient w.r.t. r is -A/B wherever
+    # the unclipped term is the max (inside the clip range both terms are equal: autograd's halves
+    # add up to the same) and 0 elsewhere; dr/dlogprob = r, so dL/dlogprob = (-A r)/B there.
+    pg_loss1 = -advantages * ratio
+    pg_loss2 = -advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+    pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+    grad_logprob = (pg_loss1 * (pg_loss1 >= pg_loss2)).div_(batch).unsqueeze(1)
+    # dlogprob/dmean = u / std, dlogprob/dlog_std = u^2 - 1
+    grad_mean = grad_logprob * u * inv_std
+    grad_log_std = grad_logprob * u2 - grad_logprob
+
+    # Value loss 0.5 mean(max((v - R)^2, (v_clip - R)^2)) with v_clip = v_old + clip(v - v_old, -eps, eps);
+    # the clipped branch passes a gradient only where v - v_old is inside the clip range.
+    if args.clip_vloss:
+        v_clipped = old_value + torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)
+        v_loss_unclipped, v_loss_clipped = (value - returns) ** 2, (v_clipped - returns) ** 2
+        v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
+        inside = (value - old_value).abs() <= args.clip_coef
+        grad_v = torch.where(v_loss_unclipped >= v_loss_clipped, value - returns,
+                             torch.where(inside, v_clipped - returns, 0.0))
+    else:
+        v_loss = 0.5 * ((value - returns) ** 2).mean()
+        grad_v = value - returns
+    grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
+
+    loss = pg_loss + args.vf_coef * v_loss
+    if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
+        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
+        grad_log_std -= args.ent_coef / batch
+    # the entropy is only logged (from the epoch's last minibatch): `log_std` lets the logger compute it
+    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "log_std": log_std,
+              "logratio": logratio, "ratio": ratio}
+    return losses, grad_mean, grad_log_std, grad_value
+
+
+def cascade_backward(actor: nn.Module, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
+    """Write every actor parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `actor(obs, cache)`."""
+    activations, means, fallback, weight = (cache[key] for key in ("activations", "means", "fallback", "weight"))
+    hidden_layers = actor.hidden_layers
+    mean_weight, mean_bias, fallback_weight, fallback_bias, log_std = (  # one lookup each: nn.Module's are slow
+        actor.mean_weight, actor.mean_bias, actor.fallback_weight, actor.fallback_bias, actor.log_std)
+    # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
+    grad_means = weight[..., None] * grad_mean  # [n, B, A]
+    torch.mm(weight, grad_log_std, out=log_std.grad)  # sum over the batch of w_i dL/dlog_std
+    hidden = activations[-1]
+    torch.bmm(hidden.transpose(1, 2), grad_means, out=mean_weight.grad)
+    torch.sum(grad_means, 1, keepdim=True, out=mean_bias.grad)
+    grad_hidden = torch.bmm(grad_means, mean_weight.transpose(1, 2))  # [n, B, H]
+    if fallback.shape[0]:
+        # Fallback k (net k >= 2) acts through C_k = l_k C_{k-1} + (1 - l_k) b_k, and C_n changes by
+        # later_k = prod_{j>k} l_j per unit of C_k, so with g = (dL/dmean, dL/dlog_std) and z_k = logit(l_k):
+        #   dL/dz_k = l_k (1 - l_k) later_k <g, C_{k-1} - b_k> = S_{k-1} - l_k S_k,
+        # where S_k = sum_{i<=k} w_i <g, b_i> = later_k <g, C_k> (a cumulative sum, no division).
+        weighted_q = torch.addcmul((grad_means * means).sum(-1), weight, log_std @ grad_log_std.T)  # [n, B]
+        partial_sums = weighted_q.cumsum_(0)  # S_1..S_n
+        grad_logit = torch.addcmul(partial_sums[:-1], fallback, partial_sums[1:], value=-1.0).unsqueeze(-1)
+        torch.bmm(hidden[1:].transpose(1, 2), grad_logit, out=fallback_weight.grad)
+        torch.sum(grad_logit, 1, keepdim=True, out=fallback_bias.grad)
+        grad_hidden[1:].baddbmm_(grad_logit, fallback_weight.transpose(1, 2))
+    for i in reversed(range(len(hidden_layers))):
+        weight_i, bias_i = hidden_layers[i]
+        below = activations[i] if i else activations[0].expand(grad_hidden.shape[0], -1, -1)  # obs, shared
+        grad_z = tanh_backward(grad_hidden, hidden)  # g tanh' = g (1 - h^2)
+        torch.bmm(below.transpose(1, 2), grad_z, out=weight_i.grad)
+        torch.sum(grad_z, 1, keepdim=True, out=bias_i.grad)
+        if i:
+            grad_hidden = torch.bmm(grad_z, weight_i.transpose(1, 2))
+        hidden = below
+    if actor.num_frozen:  # frozen nets get no gradient (section 1 detaches them)
+        for _, param, first_net in actor.base_net_parameters():
+            param.grad[: actor.frozen_rows(first_net)] = 0.0
+
+
+def mlp_backward(mlp: nn.Module, x: torch.Tensor, hidden: list[torch.Tensor], grad_output: torch.Tensor) -> None:
+    """Write dL/dW and dL/db into the parameters' .grad, given dL/d(output) of `mlp(x, hidden)`."""
+    inputs = [x, *hidden]
+    for i in reversed(range(len(mlp.layers))):
+        weight, bias = mlp.layers[i]
+        torch.mm(inputs[i].T, grad_output, out=weight.grad)  # dL/dW = input^T dL/dz
+        torch.sum(grad_output, 0, out=bias.grad)
+        if i:  # dL/dz of the layer below: g * tanh'(z) = g * (1 - h^2), with g = dL/dz W^T
+            grad_output = tanh_backward(torch.mm(grad_output, weight.T), inputs[i])
+
+
+def cascade_ppo_gradients(actor: nn.Module, critic: nn.Module, minibatch: tuple, args: Any,
+                   output_grads: list | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """`autograd_gradients` by hand: the loss of one minibatch, its gradient written into every .grad.
+    `output_grads` receives dL/dmean, dL/dlog_std, dL/dvalue (for the check)."""
+    obs, actions, old_logprob, advantages, returns, old_value = minibatch
+    cache, critic_hidden = {}, []
+    mean, log_std, _, _ = actor(obs, cache)
+    value = critic(obs, critic_hidden).squeeze(1)
+    losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
+        mean, log_std, value, actions, old_logprob, advantages, returns, old_value, args)
+    if output_grads is not None:
+        output_grads += [grad_mean, grad_log_std, grad_value.squeeze(1)]
+    cascade_backward(actor, cache, grad_mean, grad_log_std)
+    mlp_backward(critic, obs, critic_hidden, grad_value)
+    return losses.pop("loss"), losses
+
+
+def numpy_mlp_forward(layers: tuple, x: np.ndarray) -> np.ndarray:
+    """`TanhMLP.forward` in numpy, on ((W, b), ...): at batch size 1 numpy's per-call overhead is a third of
+    torch's, and its smaller code path leaves the simulator's own code in the CPU caches."""
+    *inner, (last_weight, last_bias) = layers
+    for weight, bias in inner:
+        x = np.tanh(x @ weight + bias)
+    return x @ last_weight + last_bias
+
+
+
+
+def numpy_mlp_policy(actor: nn.Module) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """obs [B, obs_dim] (numpy) -> mean [B, A], log-std [1, A], as `actor.forward`, computed on numpy copies
+    of the current weights (in their dtype): for acting during a rollout (the copies do not follow updates)."""
+    layers = tuple((w.detach().cpu().numpy().copy(), b.detach().cpu().numpy().copy()) for w, b in actor.mean_net.layers)
+    log_std = actor.log_std.detach().cpu().numpy().copy()
+    return lambda obs: (numpy_mlp_forward(layers, obs), log_std)
+
+
+
+
+def actor_backward(actor: nn.Module, obs: torch.Tensor, hidden: list[torch.Tensor], grad_mean: torch.Tensor,
+                   grad_log_std: torch.Tensor) -> None:
+    """Write the actor's .grad from dL/dmean and dL/dlog_std [B, A] of `actor(obs, hidden)`."""
+    mlp_backward(actor.mean_net, obs, hidden, grad_mean)
+    torch.sum(grad_log_std, 0, keepdim=True, out=actor.log_std.grad)  # one vector shared by the batch
+
+
+
+
+def mlp_ppo_gradients(actor: nn.Module, critic: nn.Module, minibatch: tuple, args: Any,
+                   output_grads: list | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """`autograd_gradients` by hand: the loss of one minibatch, its gradient written into every .grad.
+    `output_grads` receives dL/dmean, dL/dlog_std, dL/dvalue (for the check)."""
+    obs, actions, old_logprob, advantages, returns, old_value = minibatch
+    actor_hidden, critic_hidden = [], []
+    mean, log_std = actor(obs, actor_hidden)
+    value = critic(obs, critic_hidden).squeeze(1)
+    losses, grad_mean, grad_log_std, grad_value = ppo_loss_gradients(
+        mean, log_std, value, actions, old_logprob, advantages, returns, old_value, args)
+    if output_grads is not None:
+        output_grads += [grad_mean, grad_log_std, grad_value.squeeze(1)]
+    actor_backward(actor, obs, actor_hidden, grad_mean, grad_log_std)
+    mlp_backward(critic, obs, critic_hidden, grad_value)
+    return losses.pop("loss"), losses
+
+
+def numpy_gaussian_sampler(policy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+                           ) -> Callable[[np.ndarray], np.ndarray]:
+    """obs -> a sample of Normal(mean, exp(log_std)) as torch's `Normal.sample()` draws it: one standard normal
+    per action entry from torch's RNG (the same draws, in the same order), then mean + std * noise."""
+
+    def sample(obs: np.ndarray) -> np.ndarray:
+        mean, log_std = policy(obs)
+        noise = torch.randn(mean.shape, dtype=torch.float64 if mean.dtype == np.float64 else torch.float32)
+        return mean + np.exp(log_std) * noise.numpy()
+
+    return sample
+
+
+CHECK_SEED = 12345  # the acting check draws its noise from a forked RNG seeded with this: training's stream is untouched
+
+
+class FastPaths:
+    """Which fast paths are on, and their run-time checks against the script's section 1 (float64 copies).
+
+    `numpy_policy(actor)` gives obs -> (mean, log-std) in numpy; `fast_gradients(actor, critic, minibatch, args)`
+    writes the hand-written gradients into every .grad and returns (loss, parts). A check that fails, or any
+    exception inside a fast path, turns that path off for the rest of the run: one line through `announce`."""
+
+    def __init__(self, enabled: bool, numpy_policy: Callable, fast_gradients: Callable,
+                 announce: Callable[[str, int], None] | None = None):
+        self.acting = self.gradients = enabled
+        self.numpy_policy, self.fast_gradients, self.announce = numpy_policy, fast_gradients, announce
+        self.worst = {"acting": 0.0, "gradients": 0.0}  # largest disagreement seen by the checks that passed
+        self.check_seconds = 0.0
+        self.messages: list[str] = []
+        self._twin: tuple = (None, None, None)  # (actor, fingerprint of its weights, float64 copy)
+
+    def float64_actor(self, actor: nn.Module) -> nn.Module:
+        """A float64 copy of `actor`, reused while its weights are unchanged (the acting check at a rollout's
+        start, then the gradient check after it); the weights' sums tell whether they changed."""
+        with torch.no_grad():
+            fingerprint = torch.stack([p.sum() for p in actor.parameters()])
+        if self._twin[0] is not actor or not torch.equal(self._twin[1], fingerprint):
+            self._twin = (actor, fingerprint, float64_copy(actor))
+        return self._twin[2]
+
+    def acting_function(self, act: Callable[[nn.Module, np.ndarray], np.ndarray], actor: nn.Module,
+                        check_obs: np.ndarray, step: int) -> Callable[[np.ndarray], np.ndarray]:
+        """The rollout's obs -> actions: the numpy path if it draws what the script's `act(actor, obs)` draws
+        from the same RNG state on `check_obs`, else `act` itself."""
+        definition = functools.partial(act, actor)
+        if not self.acting:
+            return definition
+        start = time.perf_counter()
+        try:
+            twin = self.float64_actor(actor)
+            obs = np.asarray(check_obs, dtype=np.float64)
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(CHECK_SEED)
+                reference = torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64)
+                torch.manual_seed(CHECK_SEED)
+                fast = torch.as_tensor(numpy_gaussian_sampler(self.numpy_policy(twin))(obs), dtype=torch.float64)
+            if fast.shape != reference.shape:
+                raise ValueError(f"actions of shape {tuple(fast.shape)} instead of {tuple(reference.shape)}")
+            error = relative_error([fast], [reference])
+        except Exception as exc:  # an edit the fast path cannot follow (another shape, another net): a failed check
+            self.switch_off("acting", f"the numpy acting path fails on this actor ({describe(exc)})", step)
+            return definition
+        finally:
+            self.check_seconds += time.perf_counter() - start
+        if not error <= FAST_PATH_TOLERANCE:
+            self.switch_off("acting", f"the numpy acting path (forward and Gaussian sampling) draws other actions "
+                            f"than act() (max relative error {error:.1e})", step)
+            return definition
+        self.worst["acting"] = max(self.worst["acting"], error)
+        fast_act = numpy_gaussian_sampler(self.numpy_policy(actor))
+
+        def guarded(obs: np.ndarray) -> np.ndarray:
+            nonlocal fast_act
+            if fast_act is not None:
+                try:
+                    return fast_act(obs)
+                except Exception as exc:
+                    self.switch_off("acting", f"the numpy acting path raised {describe(exc)}", step)
+                    fast_act = None
+            return definition(obs)
+
+        return guarded
+
+    def check_gradients(self, autograd_gradients: Callable, actor: nn.Module, critic: nn.Module, minibatch: tuple,
+                        args: Any, step: int) -> None:
+        """Compare the hand-written loss and gradients with the script's `autograd_gradients` (what --autograd
+        runs) on one minibatch, both on the same float64 copies."""
+        if not self.gradients:
+            return
+        start = time.perf_counter()
+        try:
+            actor64, critic64 = self.float64_actor(actor), float64_copy(critic)
+            names = [f"actor.{n}" for n, _ in actor64.named_parameters()]
+            names += [f"critic.{n}" for n, _ in critic64.named_parameters()]
+            params = [*actor64.parameters(), *critic64.parameters()]
+            minibatch = tuple(t.detach().double() for t in minibatch)
+            reference_loss, _ = autograd_gradients(actor64, critic64, params, minibatch, args)
+            reference = [p.grad.clone() for p in params]
+            with torch.no_grad():
+                fast_loss, _ = self.fast_gradients(actor64, critic64, minibatch, args)
+            fast = [p.grad for p in params]
+        except Exception as exc:
+            self.switch_off("gradients", f"the hand-written gradients fail on these nets ({describe(exc)})", step)
+            return
+        finally:
+            self.check_seconds += time.perf_counter() - start
+        if not math.isfinite(reference_loss.item()) or not all(torch.isfinite(g).all() for g in reference):
+            return  # non-finite values are the non-finite guard's business
+        error = relative_error([fast_loss.reshape(1)], [reference_loss.reshape(1)])
+        if not error <= FAST_PATH_TOLERANCE:
+            self.switch_off("gradients", f"the hand-written update computes another loss than autograd_gradients "
+                            f"(relative error {error:.1e})", step)
+            return
+        worst = error
+        for name, f, r in zip(names, fast, reference):
+            error = relative_error([f], [r])
+            if not error <= FAST_PATH_TOLERANCE:
+                self.switch_off("gradients", f"the hand-written gradient of {name} differs from autograd_gradients "
+                                f"(max relative error {error:.1e})", step)
+                return
+            worst = max(worst, error)
+        self.worst["gradients"] = max(self.worst["gradients"], worst)
+
+    def update(self, actor: nn.Module, critic: nn.Module, flat: nn.Parameter, optimizer: torch.optim.Adam,
+               minibatch: tuple, args: Any, step: int) -> tuple[torch.Tensor | None, dict | None]:
+        """One minibatch step with the hand-written gradients (clipped, fused Adam); (None, None) if it raised,
+        after switching itself off (the caller then runs section 1's step)."""
+        try:
+            with torch.inference_mode():  # no autograd bookkeeping at all
+                loss, parts = self.fast_gradients(actor, critic, minibatch, args)
+                fast_optimizer_step(flat, optimizer, args.max_grad_norm)
+            return loss, parts
+        except Exception as exc:
+            self.switch_off("gradients", f"the hand-written update raised {describe(exc)}", step)
+            return None, None
+
+    def switch_off(self, path: str, what: str, step: int) -> None:
+        setattr(self, path, False)
+        remedy = ("acting through act()" if path == "acting"
+                  else "updating with autograd_gradients")
+        message = (f"fast path check at global_step={step}: {what}; continuing by {remedy} (as --autograd). "
+                   f"If section 1 was edited on purpose, this is expected; edit cascade_plumbing/fast.py to match it "
+                   f"to get the speed back")
+        self.messages.append(message)
+        if self.announce is not None:
+            self.announce(message, step)
+
+
+def describe(exc: BaseException) -> str:
+    """`TypeName: first line of the message`, for a one-line warning."""
+    text = str(exc).splitlines()[0][:160] if str(exc) else ""
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

@@ -48,19 +48,29 @@ def error_line(proc):
 @contextlib.contextmanager
 def copy_checkpoint_when(module, wanted, destination):
     """While active, every checkpoint `module` saves whose payload satisfies `wanted` is also copied
-    to `destination` (a checkpoint a killed run would have left behind)."""
-    real_save = module.save_checkpoint
+    to `destination` (a checkpoint a killed run would have left behind). The save may be the script's own
+    or the shared package's: every loaded module holding the package's `save_checkpoint` is patched."""
+    import sys
 
-    def save_and_copy(path, payload):
-        real_save(path, payload)
-        if wanted(payload):
-            shutil.copy(path, destination)
+    from cascade_plumbing.checkpoints import save_checkpoint as package_save
 
-    module.save_checkpoint = save_and_copy
+    def copying(save):
+        def save_and_copy(path, payload):
+            save(path, payload)
+            if wanted(payload):
+                shutil.copy(path, destination)
+        return save_and_copy
+
+    holders = {id(m): m for m in [module, *list(sys.modules.values())]
+               if m is module and hasattr(m, "save_checkpoint") or getattr(m, "save_checkpoint", None) is package_save}
+    originals = {key: holder.save_checkpoint for key, holder in holders.items()}
+    for key, holder in holders.items():
+        holder.save_checkpoint = copying(originals[key])
     try:
         yield
     finally:
-        module.save_checkpoint = real_save
+        for key, holder in holders.items():
+            holder.save_checkpoint = originals[key]
 
 
 def resume_from(module, checkpoint_file, folder):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+import cascade_plumbing.fast as fast
 import cascade_ppo_continuous as cpc
 import ppo_baseline
 
@@ -127,11 +128,11 @@ def backward(actor, obs, path):
         (mean.pow(2).sum() + log_std.sum()).backward()
     else:
         if not hasattr(actor, "flat"):
-            actor.flat = cpc.share_one_buffer(list(actor.parameters()))
+            actor.flat = fast.share_one_buffer(list(actor.parameters()))
         with torch.no_grad():
             cache = {}
             mean, log_std, _, _ = actor(obs, cache)
-            cpc.cascade_backward(actor, cache, 2 * mean, torch.ones_like(log_std))
+            fast.cascade_backward(actor, cache, 2 * mean, torch.ones_like(log_std))
 
 
 @pytest.mark.parametrize("path", ["autograd", "hand-written"])
@@ -162,7 +163,7 @@ def test_freeze_previous_trains_only_the_newest(path):
 def test_gaussian_entropy_matches_torch_normal():
     mean, log_std = torch.randn(8, 3), torch.randn(8, 3) * 0.3
     dist = torch.distributions.Normal(mean, log_std.exp())
-    torch.testing.assert_close(cpc.gaussian_entropy(log_std), dist.entropy().sum(-1))
+    torch.testing.assert_close(fast.gaussian_entropy(log_std), dist.entropy().sum(-1))
 
 
 def test_contributions_closed_form_small_case():
@@ -203,7 +204,7 @@ def test_numpy_policy_used_for_acting_matches_the_torch_forward(n, layers):
     obs = torch.randn(4, 5)
     with torch.no_grad():
         mean, log_std, _, _ = actor(obs)
-    policy = cpc.numpy_policy(actor)
+    policy = fast.numpy_cascade_policy(actor)
     np_mean, np_log_std = policy(obs.numpy())
     assert np_mean.dtype == np.float32 and np_log_std.dtype == np.float32
     np.testing.assert_allclose(np_mean, mean.numpy(), rtol=1e-5, atol=1e-6)
@@ -220,7 +221,7 @@ def test_numpy_policy_used_for_acting_matches_the_torch_forward(n, layers):
         if n > 1:
             actor.fallback_bias[-1] = -1e4
     with np.errstate(over="raise", invalid="raise", divide="raise"):  # underflow to 0 is expected
-        np_mean, _ = cpc.numpy_policy(actor)(obs.numpy())
+        np_mean, _ = fast.numpy_cascade_policy(actor)(obs.numpy())
     with torch.no_grad():
         torch.testing.assert_close(torch.from_numpy(np_mean), actor(obs)[0], rtol=1e-5, atol=1e-6)
 
@@ -233,7 +234,7 @@ def test_baseline_numpy_policy_matches_the_torch_forward():
             p.normal_(0.0, 0.5)
         obs = torch.randn(4, 5)
         mean, log_std = actor(obs)
-    np_mean, np_log_std = ppo_baseline.numpy_policy(actor)(obs.numpy())
+    np_mean, np_log_std = fast.numpy_mlp_policy(actor)(obs.numpy())
     np.testing.assert_allclose(np_mean, mean.numpy(), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(np.broadcast_to(np_log_std, np_mean.shape), log_std.detach().numpy())
 
@@ -245,5 +246,5 @@ def test_empty_stack_acts_with_zero_mean_and_unit_std():
     with torch.no_grad():
         mean, log_std, fallback, weight = actor(obs)
     assert torch.equal(mean, torch.zeros(4, 3)) and torch.equal(log_std, torch.zeros(4, 3))
-    np_mean, np_log_std = cpc.numpy_policy(actor)(obs.numpy())
+    np_mean, np_log_std = fast.numpy_cascade_policy(actor)(obs.numpy())
     assert (np_mean == 0).all() and (np_log_std == 0).all() and np_mean.shape == (4, 3)

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 import torch
 
+import cascade_plumbing.checkpoints as checkpoints
 import cascade_ppo_continuous as cpc
+from cascade_plumbing.envs import find_wrapper
 from helpers import ROOT, copy_checkpoint_when, ctrl_c_reaches_child, error_line, read_scalars, resume_from, run_script
 
 BASE = dict(env_id="Hopper-v4", n=2, k=1024, num_steps=256, num_minibatches=4, update_epochs=2,
@@ -43,7 +45,7 @@ def test_checkpoints_are_written_at_iteration_ends(finished_run):
 
 def test_crash_mid_write_leaves_previous_checkpoint_loadable(tmp_path, monkeypatch):
     path = str(tmp_path / "checkpoint.pt")
-    cpc.save_checkpoint(path, {"format": "cascade_ppo_continuous/2", "global_step": 1, "args": {}})
+    checkpoints.save_checkpoint(path, {"format": "cascade_ppo_continuous/2", "global_step": 1, "args": {}})
 
     def crash(obj, f):  # the process dies half way through writing the new file
         f.write(b"\x80\x02partial")
@@ -51,13 +53,12 @@ def test_crash_mid_write_leaves_previous_checkpoint_loadable(tmp_path, monkeypat
 
     monkeypatch.setattr(torch, "save", crash)
     with pytest.raises(KeyboardInterrupt):
-        cpc.save_checkpoint(path, {"format": "cascade_ppo_continuous/2", "global_step": 2, "args": {}})
+        checkpoints.save_checkpoint(path, {"format": "cascade_ppo_continuous/2", "global_step": 2, "args": {}})
     monkeypatch.undo()
     assert cpc.load_checkpoint(path)["global_step"] == 1
 
 
-@pytest.mark.parametrize("module_name", ["cascade_ppo_continuous", "cascade_ppo_discrete", "cascade_sac",
-                                         "cascade_ddpg"])
+@pytest.mark.parametrize("module_name", ["cascade_plumbing.checkpoints"])  # every script's atomic_copy
 def test_iteration_copy_is_atomic(module_name, tmp_path, monkeypatch):
     """A crash while iteration_<i>.pt is being written leaves no truncated iteration_<i>.pt behind."""
     import importlib
@@ -108,7 +109,7 @@ def test_saved_model_acts_like_the_live_policy(finished_run):
     raw = np.random.default_rng(3).normal(size=(5, 11)) * 3  # raw Hopper observations
     # live: the training wrapper's own normalization with the live statistics, then the live actor
     env = cpc.make_env("Hopper-v4", 0.99, True)()
-    norm = cpc.find_wrapper(env, gym.wrappers.NormalizeObservation)
+    norm = find_wrapper(env, gym.wrappers.NormalizeObservation)
     norm.obs_rms.mean, norm.obs_rms.var = finished_run["obs_stats"]
     norm.update_running_mean = False
     live_obs = np.clip(np.stack([norm.observation(o) for o in raw]), -10, 10).astype(np.float32)
@@ -327,7 +328,8 @@ def copy_then_die(src, dst, *args, **kwargs):
     dst.write(src.read(1000))
     dst.flush()
     os.kill(os.getpid(), signal.SIGKILL)
-cpc.shutil.copyfileobj = copy_then_die
+import cascade_plumbing.checkpoints
+cascade_plumbing.checkpoints.shutil.copyfileobj = copy_then_die
 sys.argv = ["cascade_ppo_continuous.py", *sys.argv[1:]]
 cpc.main()
 """)

@@ -4,6 +4,7 @@ import pytest
 import torch
 from torch.distributions import Normal
 
+import cascade_plumbing.fast as fast
 import cascade_ppo_continuous as cpc
 import ppo_baseline as pb
 from test_cascade_net import make_actor, reference_forward
@@ -80,10 +81,10 @@ def test_baseline_gradients_match_autograd(variant):
     clipped = ((ratio - 1).abs() > args.clip_coef).float().mean()
     assert 0.1 < clipped < 0.9, "the minibatch should exercise both sides of the clip"
 
-    flat = pb.share_one_buffer(params)
+    flat = fast.share_one_buffer(params)
     flat.grad.fill_(float("nan"))  # every gradient entry must be written
     with torch.no_grad():
-        loss, _ = pb.fast_gradients(actor, critic, (obs, actions, old_logprob, adv, returns, old_value), args)
+        loss, _ = fast.mlp_ppo_gradients(actor, critic, (obs, actions, old_logprob, adv, returns, old_value), args)
     torch.testing.assert_close(loss, ref_loss.detach(), rtol=1e-9, atol=1e-12)
     for p, ref in zip(params, ref_grads):
         torch.testing.assert_close(p.grad, ref, rtol=1e-9, atol=1e-12)
@@ -93,7 +94,7 @@ def test_shared_buffer_keeps_values_and_clipping_matches_torch():
     actor, critic = pb.Actor(5, 2, 8), pb.make_critic(5)
     params = [*actor.parameters(), *critic.parameters()]
     before = [p.detach().clone() for p in params]
-    flat = pb.share_one_buffer(params)
+    flat = fast.share_one_buffer(params)
     for p, b in zip(params, before):
         assert torch.equal(p, b)
     g = torch.Generator().manual_seed(0)
@@ -102,7 +103,7 @@ def test_shared_buffer_keeps_values_and_clipping_matches_torch():
     for rp, p in zip(reference_params, params):
         rp.grad = p.grad.clone()
     torch.nn.utils.clip_grad_norm_(reference_params, 0.5)
-    pb.clip_grad_norm(flat, 0.5)
+    fast.clip_grad_norm(flat, 0.5)
     for p, rp in zip(params, reference_params):
         torch.testing.assert_close(p.grad, rp.grad)
     # an optimizer step on the buffer moves the named parameters
@@ -156,10 +157,10 @@ def test_cascade_gradients_match_autograd_through_the_plain_loop(n, layers, froz
     for _, p, first_net in actor.base_net_parameters():  # frozen nets get no gradient
         ref_grads[p][: max(frozen - first_net, 0)] = 0.0
 
-    flat = cpc.share_one_buffer(params)
+    flat = fast.share_one_buffer(params)
     flat.grad.fill_(float("nan"))  # every gradient entry must be written
     with torch.no_grad():
-        loss, _ = cpc.fast_gradients(actor, critic, (obs, actions, old_logprob, adv, returns, old_value), args)
+        loss, _ = fast.cascade_ppo_gradients(actor, critic, (obs, actions, old_logprob, adv, returns, old_value), args)
     torch.testing.assert_close(loss, ref_loss.detach(), rtol=1e-9, atol=1e-12)
     for p in params:
         torch.testing.assert_close(p.grad, ref_grads[p], rtol=1e-9, atol=1e-12)
@@ -175,15 +176,15 @@ def test_autograd_path_writes_the_same_gradients(n, frozen):
     randomize(critic, 6)
     batch = minibatch(actor, critic, 5, 3, seed=n)
     params = [*actor.parameters(), *critic.parameters()]
-    flat = cpc.share_one_buffer(params)
+    flat = fast.share_one_buffer(params)
     with torch.no_grad():
-        loss, _ = cpc.fast_gradients(actor, critic, batch, args)
-    fast = flat.grad.clone()
+        loss, _ = fast.cascade_ppo_gradients(actor, critic, batch, args)
+    fast_grad = flat.grad.clone()
     flat.grad.fill_(float("nan"))
     with torch.no_grad():
         auto_loss, _ = cpc.autograd_gradients(actor, critic, params, batch, args)
     torch.testing.assert_close(auto_loss, loss, rtol=1e-10, atol=1e-12)
-    torch.testing.assert_close(flat.grad, fast, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(flat.grad, fast_grad, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("module", [pb, cpc])
@@ -211,7 +212,7 @@ def test_adam_step_equals_torch_optimizer_step_bit_for_bit(module):
 
     reference, reference_state = run(lambda optimizer: optimizer.step())
     for restore_after in (None, 3):
-        result, state = run(module.adam_step, restore_after)
+        result, state = run(fast.adam_step, restore_after)
         assert torch.equal(result, reference)
         for key in ("step", "exp_avg", "exp_avg_sq"):
             assert torch.equal(state[key], reference_state[key])

@@ -10,6 +10,7 @@ import sys
 import pytest
 import torch
 
+import cascade_plumbing.fast as fast_paths
 import cascade_ppo_continuous as cpc
 import ppo_baseline as pb
 from helpers import ROOT
@@ -41,8 +42,8 @@ def test_unmodified_script_keeps_its_fast_paths(module, budget, tmp_path):
                                       **budget))
     fast = result["fast_paths"]
     assert fast.acting and fast.gradients and fast.messages == []
-    assert 0 < fast.worst["gradients"] < module.FAST_PATH_TOLERANCE * 1e-3, fast.worst
-    assert fast.worst["acting"] < module.FAST_PATH_TOLERANCE * 1e-3, fast.worst
+    assert 0 < fast.worst["gradients"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
+    assert fast.worst["acting"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
 
 
 @pytest.mark.parametrize("module,budget", [(cpc, dict(n=2, k=1024)), (cpc, dict(n=2, k=1024, freeze_previous=True)),
@@ -60,22 +61,44 @@ def test_autograd_path_gives_the_fast_paths_results(module, budget, tmp_path):
             torch.testing.assert_close(slow[key], fast[key], rtol=1e-4, atol=1e-5, msg=key)
 
 
-# The edits of issue 17, made the CleanRL way: one line of section 1 changed in a copy of the script.
+# Edits made the CleanRL way, in a copy of the script: (old text, new text) pairs of section 1.
 EDITS = {
-    "loss term": ("loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef",
-                  "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef + 0.01 * mean.pow(2).mean()"),
-    "relu base nets": ("hidden = torch.tanh(stacked_affine(", "hidden = torch.relu(stacked_affine("),
-    "relu mlp": ("x = torch.tanh(torch.addmm(bias, x, weight))", "x = torch.relu(torch.addmm(bias, x, weight))"),
-    "softmax gating": ("    return log_weight.exp()",
-                       "    return torch.softmax(torch.cat([fallback_logit.new_zeros(1, fallback_logit.shape[1]), "
-                       "fallback_logit]), 0)"),
+    "loss term": [("loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef",
+                   "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef + 0.01 * mean.pow(2).mean()")],
+    "relu base nets": [("hidden = torch.tanh(stacked_affine(", "hidden = torch.relu(stacked_affine(")],
+    "relu mlp": [("x = torch.tanh(torch.addmm(bias, x, weight))", "x = torch.relu(torch.addmm(bias, x, weight))")],
+    "softmax gating": [("    return log_weight.exp()",
+                        "    return torch.softmax(torch.cat([fallback_logit.new_zeros(1, fallback_logit.shape[1]), "
+                        "fallback_logit]), 0)")],
+    # issue 27's three classes, with edits of our own:
+    # 1. a term added to the objective where autograd computes it (not in ppo_loss): pull the log-stds to 1
+    "objective term": [("        grads = torch.autograd.grad(loss, params, allow_unused=True)",
+                        "        loss = loss + (log_std - 1.0).pow(2).mean()\n"
+                        "        grads = torch.autograd.grad(loss, params, allow_unused=True)")],
+    # 2. another policy distribution: heavier-tailed Laplace noise of the same scale; rollouts must sample it
+    "laplace policy": [("    return Normal(mean, log_std.exp(), validate_args=False)",
+                        "    return torch.distributions.Laplace(mean, log_std.exp(), validate_args=False)")],
+    # 3. a shape change of the nets: each base net reads the observation and its square (2 * obs_dim inputs)
+    "squared features": [("        hidden = obs  # every base net reads the same observation",
+                          "        hidden = torch.cat([obs, obs * obs], -1)"),
+                         ("        dims = [obs_dim] + [hidden_size] * num_layers",
+                          "        dims = [2 * obs_dim] + [hidden_size] * num_layers"),
+                         ("        dims = [self.obs_dim] + [self.hidden_size] * self.num_layers",
+                          "        dims = [2 * self.obs_dim] + [self.hidden_size] * self.num_layers")],
 }
-CASES = [  # script, edit, the parts the warnings must name
-    ("cascade_ppo_continuous.py", "loss term", ["ppo_loss_gradients computes another loss than ppo_loss"]),
-    ("cascade_ppo_continuous.py", "relu base nets", ["numpy acting forward", "cascade_backward differs"]),
-    ("cascade_ppo_continuous.py", "softmax gating", ["numpy acting forward", "cascade_backward differs"]),
-    ("ppo_baseline.py", "loss term", ["ppo_loss_gradients computes another loss than ppo_loss"]),
-    ("ppo_baseline.py", "relu mlp", ["numpy acting forward", "actor_backward differs"]),
+CASES = [  # script, edit, the parts the warnings must name (in order)
+    ("cascade_ppo_continuous.py", "loss term", ["computes another loss than autograd_gradients"]),
+    ("cascade_ppo_continuous.py", "relu base nets", ["draws other actions than act()", "gradient of actor.hidden"]),
+    ("cascade_ppo_continuous.py", "softmax gating", ["draws other actions than act()", "gradient of actor.fallback"]),
+    ("cascade_ppo_continuous.py", "objective term", ["computes another loss than autograd_gradients"]),
+    ("cascade_ppo_continuous.py", "laplace policy", ["draws other actions than act()",
+                                                     "computes another loss than autograd_gradients"]),
+    ("cascade_ppo_continuous.py", "squared features", ["numpy acting path fails on this actor (ValueError"]),
+    ("ppo_baseline.py", "loss term", ["computes another loss than autograd_gradients"]),
+    ("ppo_baseline.py", "relu mlp", ["draws other actions than act()", "gradient of actor.mean_net"]),
+    ("ppo_baseline.py", "objective term", ["computes another loss than autograd_gradients"]),
+    ("ppo_baseline.py", "laplace policy", ["draws other actions than act()",
+                                           "computes another loss than autograd_gradients"]),
 ]
 
 
@@ -101,13 +124,15 @@ def unedited(tmp_path_factory):
 
 @pytest.mark.parametrize("script,edit,expected", CASES, ids=[f"{s[:-3]}-{e}" for s, e, _ in CASES])
 def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, unedited, tmp_path):
-    old, new = EDITS[edit]
     source = open(os.path.join(ROOT, script)).read()
-    assert source.count(old) == 1, f"the edit's line is not in {script} exactly once"
+    for old, new in EDITS[edit]:
+        assert source.count(old) == 1, f"the edit's line is not in {script} exactly once: {old}"
+        source = source.replace(old, new)
     copy = tmp_path / script
-    copy.write_text(source.replace(old, new))
+    copy.write_text(source)
     flags = [*TINY_FLAGS, *BUDGET[script]]
     switched, switched_dir = run_copy(str(copy), *flags, track_dir=tmp_path / "fast")
+    assert "Traceback" not in switched.stderr, switched.stderr  # a fast path that raises is a failed check
     warnings = [line for line in switched.stderr.splitlines() if line.startswith("warning: fast path check")]
     assert len(warnings) == len(expected), switched.stderr
     for line, part in zip(warnings, expected):
@@ -116,11 +141,12 @@ def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, un
     switched_params, edited = final_parameters(switched_dir), final_parameters(autograd_dir)
     # the edit takes effect exactly as autograd computes it (up to float rounding)...
     assert_close_parameters(switched_params, edited, 1e-4)
-    # ...and it does change the result: by far more than that rounding (the loss term's effect is small
-    # at first, since the means start at ~0.01)
-    rounding = max((switched_params[k] - edited[k]).abs().max().item() for k in edited)
-    effect = max((edited[k] - unedited[script][k]).abs().max().item() for k in edited)
-    assert effect > max(10 * rounding, 1e-6), (effect, rounding)
+    # ...and it does change the result: by far more than that rounding (the first loss term's effect is small
+    # at first, since the means start at ~0.01; a shape change is a change by construction)
+    if edit != "squared features":
+        rounding = max((switched_params[k] - edited[k]).abs().max().item() for k in edited)
+        effect = max((edited[k] - unedited[script][k]).abs().max().item() for k in edited)
+        assert effect > max(10 * rounding, 1e-6), (effect, rounding)
 
 
 def test_copy_of_a_script_runs_alone(tmp_path):

@@ -8,6 +8,7 @@ import torch
 
 import cascade_ppo_continuous as cpc
 import learning_checks
+from cascade_plumbing.envs import find_wrapper
 from helpers import error_line, only_run_dir, read_scalars, run_script
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
@@ -17,8 +18,8 @@ def test_each_iteration_gets_fresh_critic_and_optimizer_and_keeps_normalization(
     seen = []
 
     def record(state):
-        norm = cpc.find_wrapper(state["envs"].envs[0], gym.wrappers.NormalizeObservation)
-        rew = cpc.find_wrapper(state["envs"].envs[0], gym.wrappers.NormalizeReward)
+        norm = find_wrapper(state["envs"].envs[0], gym.wrappers.NormalizeObservation)
+        rew = find_wrapper(state["envs"].envs[0], gym.wrappers.NormalizeReward)
         seen.append(dict(
             iteration=state["iteration"], size=state["actor"].size, critic=state["critic"],
             critic_params=[p.detach().clone() for p in state["critic"].parameters()],
@@ -106,7 +107,7 @@ def test_frozen_eval_normalization_equals_the_training_wrapper():
     for _ in range(50):
         raw_next, *_ = env.unwrapped.step(env.action_space.sample())  # advance the sim, bypassing wrappers
         wrapped, *_ = env.step(env.action_space.sample())
-    norm = cpc.find_wrapper(env, gym.wrappers.NormalizeObservation)
+    norm = find_wrapper(env, gym.wrappers.NormalizeObservation)
     norm.update_running_mean = False
     stats = (norm.obs_rms.mean.copy(), norm.obs_rms.var.copy())
     raw = np.random.default_rng(0).normal(size=env.observation_space.shape) * 5

@@ -1,0 +1,132 @@
+"""What a run records about itself: its folder, TensorBoard writer, W&B run, training videos, progress line,
+clock and checkpoint file; and what it restores of itself when resumed. No algorithm here: a script's own
+subclass adds its scalars, its evaluations and what its checkpoints hold."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from dataclasses import asdict
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+
+from .checkpoints import CHECKPOINT_NAME, atomic_copy, non_finite_advice, repair_iteration_files, save_checkpoint
+from .envs import make_render_env
+from .errors import fail
+from .runs import rng_states, run_name, set_rng_states
+from .tracking import VIDEO_ROOT, Progress, finish_wandb, finished_videos, log_new_videos, start_wandb
+
+
+class RunRecord:
+    """A run's folder `<track_dir>/<run_name>` and everything written there, for a new run or a resumed one
+    (`checkpoint`, whose folder it continues). `envs` are the training envs (their RunState wrappers)."""
+
+    def __init__(self, args: Any, checkpoint: dict | None, envs: gym.vector.VectorEnv, total_steps: int,
+                 at_iteration_end: bool = True):
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.args, self.envs = args, envs
+        if args.capture_video:  # here, once the --num-envs workers exist: forked after a render, they hang
+            make_render_env(args.env_id).close()  # no OpenGL backend: one line now, not a traceback later
+        if checkpoint is None:
+            self.run_dir = os.path.join(args.track_dir, run_name(args))
+        else:
+            self.run_dir = os.path.dirname(checkpoint["path"])
+            repair_iteration_files(self.run_dir, checkpoint, at_iteration_end)
+        name = os.path.basename(self.run_dir)
+        # kept through an untracked resume, so that a later --track continues the same W&B run
+        self.wandb_run_id = None if checkpoint is None else checkpoint.get("wandb_run_id")
+        if args.track:  # before the SummaryWriter: W&B mirrors the TensorBoard logs of writers made after it
+            self.wandb_run_id = start_wandb(args, name, self.run_dir, self.wandb_run_id)
+        if checkpoint is None:
+            self.writer = SummaryWriter(self.run_dir)
+            self.writer.add_text(
+                "hyperparameters",
+                "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
+            )
+        else:  # purge_step hides whatever the killed run logged after its last checkpoint
+            self.writer = SummaryWriter(self.run_dir, purge_step=checkpoint["global_step"] + 1)
+        self.video_folder = os.path.join(VIDEO_ROOT, name) if args.capture_video else None
+        if self.video_folder is not None:
+            envs.call("record_videos_to", self.video_folder)
+        self.videos_sent = finished_videos(self.video_folder)  # a resumed run's earlier ones went to W&B already
+        self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT_NAME)
+        self.progress = Progress(total_steps, args.quiet)
+        self.start_time = time.time()
+        self.last_checkpoint_step = 0
+
+    def restore_envs(self, checkpoint: dict) -> tuple[int, np.ndarray]:
+        """Every env's saved state, the RNG streams and the clock; returns (global_step, next_obs)."""
+        global_step = checkpoint["global_step"]
+        self.start_time = time.time() - checkpoint["elapsed"]
+        self.last_checkpoint_step = global_step
+        self.envs.reset(seed=self.args.seed)  # sets up the vector env; then every env gets its saved state back
+        self.envs.call("set_state", checkpoint["env_states"])
+        set_rng_states(checkpoint["rng"])
+        self.progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
+        return global_step, np.asarray(checkpoint["next_obs"], dtype=np.float32)
+
+    def sps(self, global_step: int) -> float:
+        return global_step / max(time.time() - self.start_time, 1e-9)
+
+    def episodes(self, infos: dict, global_step: int) -> None:
+        """Raw returns and lengths of the training episodes that ended at this step."""
+        if "final_info" in infos and "episode" in infos["final_info"]:
+            finished = infos["final_info"]["_episode"]
+            for ret, length in zip(infos["final_info"]["episode"]["r"][finished],
+                                   infos["final_info"]["episode"]["l"][finished]):
+                self.writer.add_scalar("charts/episodic_return", ret, global_step)
+                self.writer.add_scalar("charts/episodic_length", length, global_step)
+
+    def tick(self, global_step: int, size: int) -> None:
+        """After an update: SPS, videos to W&B, the progress line."""
+        sps = self.sps(global_step)
+        self.writer.add_scalar("charts/SPS", int(sps), global_step)
+        if self.args.track:
+            log_new_videos(self.video_folder, self.videos_sent, global_step)
+        self.progress.update(global_step, sps, size)
+
+    def fast_path_off(self, message: str, step: int) -> None:
+        """A fast path failed its check: one line on stderr (also with --quiet), a TensorBoard text."""
+        print(f"\r\033[Kwarning: {message}" if self.progress.tty else f"warning: {message}", file=sys.stderr,
+              flush=True)
+        self.writer.add_text("fast_paths", message, step)
+        self.progress.note = " | autograd (fast path check failed)"
+
+    def stop_if_non_finite(self, loss: torch.Tensor, modules: dict[str, nn.Module], where: str) -> None:
+        """Stop before anything non-finite reaches a checkpoint, naming what became non-finite first: the loss,
+        or the first parameter of `modules` (name -> module)."""
+        if math.isfinite(loss.item()) and all(torch.isfinite(p).all() for m in modules.values() for p in m.parameters()):
+            return
+        what = "the loss"
+        if math.isfinite(loss.item()):
+            named = [(f"{m}.{n}", p) for m, module in modules.items() for n, p in module.named_parameters()]
+            what = next(n for n, p in named if not torch.isfinite(p).all())
+        self.writer.close()
+        fail(f"{what} became non-finite at {where}; {non_finite_advice(self.checkpoint_path)}")
+
+    def checkpoint_due(self, global_step: int) -> bool:
+        every = getattr(self.args, "checkpoint_every", 0)
+        return bool(every) and global_step - self.last_checkpoint_step >= every
+
+    def save(self, payload: dict, global_step: int, iteration_end: int | None = None) -> None:
+        """Write the checkpoint atomically, with what every run keeps (env states, RNG streams, clock, W&B run
+        id); at the end of iteration i also as iteration_<i>.pt."""
+        payload.update(elapsed=time.time() - self.start_time, env_states=self.envs.call("get_state"),
+                       rng=rng_states(), wandb_run_id=self.wandb_run_id, global_step=global_step)
+        save_checkpoint(self.checkpoint_path, payload)
+        if iteration_end is not None:
+            atomic_copy(self.checkpoint_path, os.path.join(self.run_dir, f"iteration_{iteration_end}.pt"))
+        self.last_checkpoint_step = global_step
+
+    def close(self, global_step: int) -> None:
+        self.writer.close()
+        if self.args.track:
+            log_new_videos(self.video_folder, self.videos_sent, global_step)
+            finish_wandb(exit_code=0)
