@@ -6,7 +6,9 @@ from __future__ import annotations
 import glob
 import os
 import random
+import shutil
 import signal
+import socket
 import sys
 import tempfile
 import time
@@ -86,21 +88,38 @@ def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
 
 
 def stop_signal(signum, frame) -> None:
-    """SIGTERM stops a run as Ctrl-C does (the exit code tells them apart)."""
+    """SIGTERM and Ctrl-C stop a run (the exit code tells them apart); once the run's final checkpoint is being
+    written, a stop lets the run finish instead (its last evaluation and logs; the run is complete then)."""
+    if FINISHING:
+        if not FINISHING[0]:  # one line, not print(): the handler may interrupt a print
+            os.write(2, f"\r{signal.Signals(signum).name} after the final checkpoint: the run finishes its last "
+                        "steps first\n".encode())
+            FINISHING[0] = True
+        return
     STOPPED_BY.append(signum)
     raise KeyboardInterrupt
 
 
 STOPPED_BY: list[int] = []
+FINAL: list[Callable[[str, dict], bool]] = []  # run_main's test of whether a checkpoint is the end of the run
+FINISHING: list[bool] = []  # [whether a stop was ignored] once the final checkpoint is being written
+
+
+def saving(path: str, payload: dict) -> None:
+    """Called by save_checkpoint before each write: from the run's final checkpoint on, a stop no longer fails
+    the run (before its write, so that no stop falls between the write and this)."""
+    if FINAL and not FINISHING and "args" in payload and FINAL[0](path, payload):
+        FINISHING.append(False)
 
 
 def stopped(args: Any, checkpoint: dict | None, started: float) -> None:
-    """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM)."""
+    """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM).
+    A new run stopped before its first checkpoint removes its folder: there is nothing in it to resume."""
     if checkpoint is not None:
         run_dir = os.path.dirname(checkpoint["path"])
     else:  # this run's folder: the newest of its name, made since it started
         pattern = os.path.join(glob.escape(args.track_dir), f"{glob.escape(args.env_id)}__{glob.escape(args.exp_name)}__{args.seed}__*")
-        mine = [d for d in glob.glob(pattern) if int(d.rsplit("__", 1)[1]) >= int(started)]
+        mine = [d for d in glob.glob(pattern) if d.rsplit("__", 1)[1].isdigit() and int(d.rsplit("__", 1)[1]) >= int(started)]
         run_dir = max(mine, key=os.path.getmtime) if mine else None
     signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
     name = signal.Signals(signum).name
@@ -109,8 +128,21 @@ def stopped(args: Any, checkpoint: dict | None, started: float) -> None:
         where = f"the last checkpoint is {os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}"
     else:
         where = "no checkpoint was written yet, so there is nothing to resume"
+        if checkpoint is None and run_dir is not None and only_mine(run_dir):
+            shutil.rmtree(run_dir, ignore_errors=True)
+            where += f" (its folder {run_dir} is removed)"
     print(f"\rstopped by {name}: {where}", file=sys.stderr, flush=True)
     sys.exit(128 + signum)
+
+
+def only_mine(run_dir: str) -> bool:
+    """Whether `run_dir` holds no checkpoint (no .pt file) and no TensorBoard log of another process."""
+    mine = f".{socket.gethostname()}.{os.getpid()}."
+    for _, _, files in os.walk(run_dir):
+        for name in files:
+            if name.endswith((".pt", ".pt.tmp")) or (name.startswith("events.out.tfevents.") and mine not in name):
+                return False
+    return True
 
 
 def run_name(args: Any) -> str:
@@ -156,6 +188,10 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
                   "nothing to resume")
             return
     signal.signal(signal.SIGTERM, stop_signal)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where it is ignored (nohup, `cmd &`)
+        signal.signal(signal.SIGINT, stop_signal)
+    # the checkpoint a resume would find finished (the same test): from its write on, a stop lets the run finish
+    FINAL[:] = [lambda path, payload: finished(type(args)(**payload["args"]), {**payload, "path": path})]
     started = time.time()
     try:
         train(args, checkpoint)
