@@ -7,9 +7,12 @@ the training loop and what is evaluated. Everything else lives here, once:
 - `envs`: env construction, the wrappers that save and restore an env's state, training videos;
 - `tracking`: Weights & Biases (`--track`), the progress line;
 - `checkpoints`: atomic checkpoint files, their repair and loading;
-- `evaluation`: the worker process that runs evaluations beside training;
+- `evaluation`: the worker process that runs evaluations beside training, the envs of evaluation episodes,
+  the start of --evaluate;
 - `runs`: seeding and RNG state, run names, resume, stop signals, the command-line entry point;
 - `replay`: the replay buffer of the off-policy scripts;
+- `ppo`: what the continuous PPO scripts share: CleanRL's env stack, the checks of their settings, CleanRL's
+  update scalars;
 - `fast`: optimizer and check helpers of the scripts' fast paths (the paths themselves stay in the scripts,
   next to the definitions they are checked against).
 

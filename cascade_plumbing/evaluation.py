@@ -1,6 +1,6 @@
 """Evaluations beside training: a worker process that runs the script's own evaluation on frozen copies of
-the policy, or the same inline. What is evaluated, and how, is the script's (its `Evaluator`); this is only
-the transport."""
+the policy, or the same inline; the envs of evaluation episodes, stepped side by side; the start of --evaluate.
+What is evaluated, and how it acts, is the script's (its `Evaluator`); this is only the transport and the envs."""
 
 from __future__ import annotations
 
@@ -9,8 +9,11 @@ import signal
 from collections.abc import Callable
 from typing import Any
 
+import gymnasium as gym
+import numpy as np
 import torch
 
+from .envs import make_render_env, write_video
 from .errors import fail
 
 
@@ -75,3 +78,58 @@ class EvaluationRunner:
             self.process.join(timeout=10)
         elif hasattr(self.context, "close"):
             self.context.close()
+
+
+class EvaluationEnvs:
+    """`episodes` envs of `env_id` for evaluation episodes, run side by side (with `render`, the first one's frames
+    are kept in `frames`, for a video); a script's `Evaluator` subclasses it and says how its policy acts. `seed`:
+    the evaluation's seed, from which the script derives each call's episode seeds and action noise."""
+
+    def __init__(self, env_id: str, episodes: int, seed: int, render: bool = False):
+        self.envs = [make_render_env(env_id) if render else gym.make(env_id) for _ in range(episodes)]
+        self.seed = seed
+        self.frames: list[np.ndarray] | None = [] if render else None
+
+    def run_episodes(self, act: Callable[[np.ndarray, list[int]], np.ndarray], base_seed: int) -> np.ndarray:
+        """One episode on every env (env i reset with seed `base_seed + i`), until all have ended; `act(obs,
+        running)` maps the raw observations [m, obs_dim] of the m envs still running (their indices: `running`) to
+        their actions, which are clipped to the action space. Returns each episode's undiscounted return."""
+        obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
+        if self.frames is not None:
+            self.frames.append(self.envs[0].render())
+        low, high = self.envs[0].action_space.low, self.envs[0].action_space.high
+        returns = np.zeros(len(self.envs))
+        active = list(range(len(self.envs)))
+        while active:
+            action = np.clip(act(obs[active], active), low, high)
+            still_active = []
+            for row, i in enumerate(active):
+                o, r, terminated, truncated, _ = self.envs[i].step(action[row])
+                if self.frames is not None and i == 0:
+                    self.frames.append(self.envs[0].render())
+                returns[i] += r
+                obs[i] = o
+                if not (terminated or truncated):
+                    still_active.append(i)
+            active = still_active
+        return returns
+
+    def write_video(self, path: str) -> None:
+        """The kept frames (`render`) as an mp4."""
+        write_video(self.frames, path, self.envs[0].metadata.get("render_fps", 30))
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+def open_saved_model(args: Any, load_checkpoint: Callable[[str], dict]) -> dict:
+    """The start of --evaluate: --eval-episodes checked, the checkpoint `args.evaluate` loaded, with
+    --capture-video its env's renderer tried (one line now, before any episode is run), torch's threads set."""
+    if args.eval_episodes < 1:
+        fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
+    checkpoint = load_checkpoint(args.evaluate)
+    if args.capture_video:
+        make_render_env(checkpoint["args"]["env_id"]).close()
+    torch.set_num_threads(args.torch_threads)
+    return checkpoint
