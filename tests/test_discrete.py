@@ -45,7 +45,7 @@ def test_discretization_maps_every_action_to_its_corner(module, low, high):
     env.reset(seed=0)
     for i in range(2**dims):
         digits = format(i, f"0{dims}b")  # i_1 ... i_A, most significant first
-        # SPEC §7: a_j = low_j * i_j + high_j * (1 - i_j), i.e. digit "1" -> low, "0" -> high
+        # paper Appendix I: a_j = low_j * i_j + high_j * (1 - i_j), i.e. digit "1" -> low, "0" -> high
         expected = [low[j] if digits[j] == "1" else high[j] for j in range(dims)]
         env.step(i)
         np.testing.assert_array_equal(inner.received, np.array(expected, np.float32))
