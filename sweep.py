@@ -3,12 +3,14 @@
 A sweep expands presets and/or command templates over env ids and seeds into runs, and executes
 each run as a subprocess of one of our scripts (`--env-id`, `--seed`, `--exp-name`, `--track-dir`
 added; with --track, the W&B flags: one group per sweep), with its log in `<sweep-dir>/logs/`. A run's
-identity is its full command (tracking aside): its folder is
+identity is its full command (tracking and the checkpoint cadence --scale adds aside): its folder is
 `<sweep-dir>/runs/<env>__<label>__<seed>__<hash of the command>/`, and a run that exits 0 gets a
 completion marker `<sweep-dir>/done/<same name>.json` (written last). Re-running a sweep skips marked
-runs and restarts the others, resuming from their own checkpoint when one exists; a re-run with other
-flags (or another --scale) is another setup, so it starts new runs and never continues old ones. Failures are reported at the end with the
-path of their log; they do not stop the other runs.
+runs and restarts the others, resuming from their own checkpoint when one exists (a run folder without a
+checkpoint, left by a run killed before its first one, is removed then); a re-run with other flags (or
+another --scale) is another setup, so it starts new runs and never continues old ones. Failures are
+reported at the end with the path of their log; they do not stop the other runs. Ctrl-C or SIGTERM stops
+the running runs (each resumes on the next call) and ends the sweep with one line saying so (exit 130 / 143).
 
     python sweep.py --preset standard --envs Hopper-v4 --seeds 1 2 --scale 0.01
     python sweep.py --preset standard --envs Ant-v4 Walker2d-v4 --seeds 1 2 3 --backend ray --ray-address auto
@@ -18,17 +20,21 @@ path of their log; they do not stop the other runs.
 
 from __future__ import annotations
 
+import ast
+import functools
 import glob
 import hashlib
 import json
 import os
 import shlex
+import shutil
 import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
@@ -51,7 +57,7 @@ class Args:
     seeds: list[str] = field(default_factory=lambda: ["1"])
     """seeds (integers); every run of the grid is made for each"""
     scale: float = 1.0
-    """multiply every step budget (--k, --total-timesteps) by this, e.g. 0.01 for a quick check"""
+    """multiply every step budget (--k, --total-timesteps) by this, e.g. 0.01 for a quick check; the checkpoint cadence (--checkpoint-every, the script's default too) scales with it"""
     sweep_dir: str | None = None
     """folder for runs/, logs/ and done/ markers (default: sweeps/<presets or 'custom'>); on a cluster, a shared folder"""
     backend: Literal["local", "ray"] = "local"
@@ -137,7 +143,8 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     ]),
 }
 BUDGET_FLAGS = ("--k", "--total-timesteps", "--cycle-steps")
-MIN_BUDGET = 2048  # one PPO rollout: a scaled budget never goes below it
+MIN_BUDGET = 2048  # one PPO rollout: a scaled budget (or checkpoint cadence) never goes below it
+CADENCE_FLAG = "--checkpoint-every"  # scaled too; 0 (checkpoints at iteration ends only) stays 0
 
 
 def fail(message: str) -> None:
@@ -151,6 +158,9 @@ class Run:
     flags: list[str]
     env_id: str
     seed: int
+    cadence: list[str] = field(default_factory=list)
+    """--checkpoint-every for a scaled run whose template leaves the script's default (not part of its identity:
+    it does not change what the run computes, and a resume may change it)"""
 
     @property
     def setup_hash(self) -> str:
@@ -169,7 +179,7 @@ class Run:
 
     def fresh_command(self, python: str, track_dir: str, tracking: list[str]) -> list[str]:
         return [python, os.path.join(ROOT, self.script), *self.flags, "--env-id", self.env_id, "--seed",
-                str(self.seed), "--exp-name", self.label, "--track-dir", track_dir, "--quiet", *tracking]
+                str(self.seed), "--exp-name", self.label, "--track-dir", track_dir, "--quiet", *self.cadence, *tracking]
 
     def command(self, python: str, runs_dir: str, tracking: list[str] = ()) -> list[str]:
         """The fresh run's command, or a resume of its latest checkpoint when one exists.
@@ -211,11 +221,51 @@ def check_wandb() -> None:
 
 
 def scale_flags(flags: list[str], scale: float) -> list[str]:
+    """Budgets and the checkpoint cadence (`--k 1000000` or `--k=1000000`) times `scale`, never below one PPO
+    rollout; a cadence of 0 (no checkpoints between iteration ends) stays 0."""
+    def scaled(name: str, value: str) -> str:
+        if name == CADENCE_FLAG and int(value) == 0:
+            return value
+        return str(max(int(round(int(value) * scale)), MIN_BUDGET))
+
     out = list(flags)
-    for i, flag in enumerate(out[:-1]):
-        if flag in BUDGET_FLAGS:
-            out[i + 1] = str(max(int(round(int(out[i + 1]) * scale)), MIN_BUDGET))
+    for i, flag in enumerate(out):
+        name, eq, value = flag.partition("=")
+        if name not in (*BUDGET_FLAGS, CADENCE_FLAG):
+            continue
+        if eq:
+            out[i] = f"{name}={scaled(name, value)}"
+        elif i + 1 < len(out):
+            out[i + 1] = scaled(name, out[i + 1])
     return out
+
+
+@functools.cache
+def default_checkpoint_every(script: str) -> int | None:
+    """The script's default --checkpoint-every (its Args field), or None where it has no such flag."""
+    try:
+        with open(os.path.join(ROOT, script)) as f:
+            tree = ast.parse(f.read())
+    except (OSError, SyntaxError):
+        return None
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef) and node.name == "Args":
+            for item in node.body:
+                if isinstance(item, ast.AnnAssign) and getattr(item.target, "id", None) == "checkpoint_every":
+                    try:
+                        return ast.literal_eval(item.value)
+                    except ValueError:
+                        return None
+    return None
+
+
+def scaled_cadence(script: str, flags: list[str], scale: float) -> list[str]:
+    """A scaled run whose template leaves --checkpoint-every at the script's default gets that default scaled
+    (a run scaled down 100x would otherwise write no checkpoint before its end, and restart from zero when killed)."""
+    default = default_checkpoint_every(script)
+    if scale == 1 or not default or any(flag.partition("=")[0] == CADENCE_FLAG for flag in flags):
+        return []
+    return [CADENCE_FLAG, scale_flags([CADENCE_FLAG, str(default)], scale)[1]]
 
 
 def expand(args: Args) -> list[Run]:
@@ -247,7 +297,8 @@ def expand(args: Args) -> list[Run]:
     for env_id in args.envs:
         for seed in seeds:
             for label, script, flags in templates:
-                run = Run(label, script, scale_flags(flags, args.scale), env_id, seed)
+                run = Run(label, script, scale_flags(flags, args.scale), env_id, seed,
+                          scaled_cadence(script, flags, args.scale))
                 if run.run_id not in seen:  # presets share some runs (e.g. standard Cascade)
                     seen.add(run.run_id)
                     runs.append(run)
@@ -257,13 +308,15 @@ def expand(args: Args) -> list[Run]:
 # ----------------------------------------------------------------------------------------------
 # Executing a run: a subprocess, its log, and the completion marker written last
 # ----------------------------------------------------------------------------------------------
-def execute(command: list[str], log_path: str, marker_path: str, cwd: str, identity: dict | None = None) -> int:
+def execute(command: list[str], log_path: str, marker_path: str, cwd: str, identity: dict | None = None,
+            start: Callable | None = None) -> int | None:
+    """Run `command` to its end, logging to `log_path`; its exit code. `start(command, log, cwd)` starts it
+    (default: `launch`; the local backend's returns None once the sweep stops: then so does this)."""
     os.makedirs(os.path.dirname(log_path), exist_ok=True)
     with open(log_path, "a") as log:
-        log.write(f"$ {shlex.join(command)}\n")
-        log.flush()
-        proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=cwd, start_new_session=True)
-        RUNNING.add(proc)
+        proc = (start or launch)(command, log, cwd)
+        if proc is None:
+            return None
         try:
             code = proc.wait()
         finally:
@@ -277,28 +330,56 @@ def execute(command: list[str], log_path: str, marker_path: str, cwd: str, ident
     return code
 
 
+def launch(command: list[str], log, cwd: str) -> subprocess.Popen:
+    log.write(f"$ {shlex.join(command)}\n")
+    log.flush()
+    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=cwd, start_new_session=True)
+
+
+def launch_unless_stopping(command: list[str], log, cwd: str) -> subprocess.Popen | None:
+    """Local backend: a run starts before the sweep stops (and is stopped with the others) or not at all."""
+    with RUNNING_LOCK:
+        if STOP:
+            return None
+        proc = launch(command, log, cwd)
+        RUNNING.add(proc)
+        return proc
+
+
 RUNNING: set[subprocess.Popen] = set()
+RUNNING_LOCK = threading.Lock()
+STOP: list[int] = []  # the signal that stops the sweep (SIGINT: Ctrl-C, SIGTERM: kill), once it came
+# the exit of a run the sweep stopped: the scripts exit 128 + SIGTERM, or die by it before their handler is set
+STOPPED_CODES = (128 + signal.SIGTERM, -signal.SIGTERM)
 
 
 class Tracker:
-    """Counts and a periodic progress line: done / running / failed / pending, ETA."""
+    """Counts and a periodic progress line: done / running / failed / pending, ETA; after the sweep is stopped,
+    the runs it stopped (not failures) and no more progress lines."""
 
     def __init__(self, total: int, parallel: int, every: float, running_label: str = "running"):
         self.total, self.parallel, self.every = total, max(parallel, 1), every
         self.running_label = running_label
         self.done = self.running = 0
         self.failed: list[tuple[Run, str, int]] = []
+        self.stopped: list[Run] = []
+        self.active: dict[str, Run] = {}  # started, not finished
         self.durations: list[float] = []
         self.lock = threading.Lock()
         self.last = 0.0
 
-    def started(self) -> None:
+    def started(self, run: Run) -> None:
         with self.lock:
             self.running += 1
+            self.active[run.run_id] = run
 
     def finished(self, run: Run, code: int, log: str, seconds: float) -> None:
         with self.lock:
             self.running -= 1
+            self.active.pop(run.run_id, None)
+            if STOP and code in STOPPED_CODES:
+                self.stopped.append(run)
+                return
             if code == 0:
                 self.done += 1
                 self.durations.append(seconds)
@@ -308,7 +389,7 @@ class Tracker:
             self.report(force=True)
 
     def report(self, force: bool = False) -> None:
-        if not force and time.time() - self.last < self.every:
+        if STOP or (not force and time.time() - self.last < self.every):
             return
         self.last = time.time()
         pending = self.total - self.done - len(self.failed) - self.running
@@ -324,14 +405,22 @@ class Tracker:
 def run_local(todo: list[tuple[Run, list[str], str, str]], workers: int, tracker: Tracker) -> None:
     def one(item):
         run, command, log, marker = item
-        tracker.started()
-        start = time.time()
-        code = execute(command, log, marker, ROOT, run.identity())
-        tracker.finished(run, code, log, time.time() - start)
+
+        def start(*launch_args):
+            proc = launch_unless_stopping(*launch_args)
+            if proc is not None:
+                tracker.started(run)
+            return proc
+
+        begun = time.time()
+        code = execute(command, log, marker, ROOT, run.identity(), start)
+        if code is not None:
+            tracker.finished(run, code, log, time.time() - begun)
 
     pool = ThreadPoolExecutor(max_workers=workers)
-    futures = [pool.submit(one, item) for item in todo]
+    futures = []
     try:
+        futures += [pool.submit(one, item) for item in todo]
         while not all(f.done() for f in futures):
             time.sleep(0.5)
             tracker.report()
@@ -341,17 +430,20 @@ def run_local(todo: list[tuple[Run, list[str], str, str]], workers: int, tracker
         for f in futures:
             f.cancel()
         stop_running()
-        pool.shutdown(wait=True, cancel_futures=True)
+        pool.shutdown(wait=True, cancel_futures=True)  # the stopped runs exit (after their one line)
         raise
     pool.shutdown()
 
 
 def stop_running() -> None:
-    for proc in list(RUNNING):
-        try:
-            os.killpg(proc.pid, signal.SIGTERM)
-        except ProcessLookupError:
-            pass
+    """SIGTERM to each running run (its main process, which ends its own worker processes): a run stops at its
+    last checkpoint, or finishes normally when its final checkpoint is already being written."""
+    with RUNNING_LOCK:
+        for proc in list(RUNNING):
+            try:
+                proc.send_signal(signal.SIGTERM)
+            except ProcessLookupError:
+                pass
 
 
 def check_ray_address(address: str, timeout: float = 5.0) -> None:
@@ -383,7 +475,7 @@ def run_ray(todo: list[tuple[Run, list[str], str, str]], args: Args, tracker: Tr
     pending = {}
     for run, command, log, marker in todo:
         pending[remote.remote(command, log, marker, ROOT, run.identity())] = (run, log, time.time())
-        tracker.started()
+        tracker.started(run)
     try:
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
@@ -398,7 +490,7 @@ def run_ray(todo: list[tuple[Run, list[str], str, str]], args: Args, tracker: Tr
                 tracker.finished(run, code, log, time.time() - start)
             tracker.report()
     except KeyboardInterrupt:
-        for ref in pending:
+        for ref in pending:  # these runs end unfinished (counted as stopped, not failed)
             ray.cancel(ref, force=True)
         raise
     finally:
@@ -406,17 +498,30 @@ def run_ray(todo: list[tuple[Run, list[str], str, str]], args: Args, tracker: Tr
 
 
 def interrupt(signum, frame):
+    """Ctrl-C or SIGTERM: the sweep stops (once; a repeated signal while it stops its runs changes nothing)."""
+    if STOP:
+        return
+    STOP.append(signum)
     raise KeyboardInterrupt
 
 
 def main() -> None:
+    # Ctrl-C and `kill` stop the sweep cleanly, even when started in the background (where SIGINT
+    # is inherited as ignored): running runs are stopped, finished ones keep their markers.
+    signal.signal(signal.SIGINT, interrupt)
+    signal.signal(signal.SIGTERM, interrupt)
+    try:
+        sweep()
+    except KeyboardInterrupt:  # stopped before any run started
+        signum = STOP[-1] if STOP else signal.SIGINT
+        print(f"[sweep] stopped by {signal.Signals(signum).name} before any run started", flush=True)
+        sys.exit(128 + signum)
+
+
+def sweep() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
     if args.workers < 1:
         fail(f"--workers must be at least 1 (got {args.workers})")
-    # Ctrl-C and `kill` stop the sweep cleanly, even when started in the background (where SIGINT
-    # is inherited as ignored): running runs are terminated, finished ones keep their markers.
-    signal.signal(signal.SIGINT, interrupt)
-    signal.signal(signal.SIGTERM, interrupt)
     if args.list_presets:
         for name, (what, entries) in PRESETS.items():
             print(f"{name:14s} {what} ({len(entries)} runs per env and seed)")
@@ -444,8 +549,10 @@ def main() -> None:
         fail(f"script(s) not found in {ROOT}: {', '.join(missing)}")
     if args.track and todo:
         check_wandb()
+    removed = sum(remove_unresumable(os.path.join(track_dir, run.run_id)) for run, *_ in todo)
     print(f"[sweep] {len(runs)} runs in {sweep_dir}: {skipped} already finished, {len(todo)} to run "
-          f"({args.backend} backend)", flush=True)
+          f"({args.backend} backend)" + (f"; removed {removed} run folder(s) without a checkpoint, left by runs "
+                                         "killed before their first one" if removed else ""), flush=True)
     parallel = args.workers if args.backend == "local" else len(todo)
     # Ray schedules the tasks itself: submitted ones are running or waiting for a free CPU
     tracker = Tracker(len(todo), parallel, args.status_every,
@@ -456,15 +563,50 @@ def main() -> None:
         else:
             run_ray(todo, args, tracker)
     except KeyboardInterrupt:
-        print(f"\n[sweep] interrupted: {tracker.done} done; unfinished runs restart (or resume) on the next call",
-              flush=True)
-        sys.exit(130)
+        pass
+    # the work is over: a stop from here on changes nothing (the summary is printed in full)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    stopped = tracker.stopped + list(tracker.active.values())  # Ray: tasks cancelled while running or queued
+    not_started = len(todo) - tracker.done - len(tracker.failed) - len(stopped)
+    if STOP and (stopped or not_started):
+        print(stop_line(STOP[-1], stopped, not_started, tracker, args.python, track_dir), flush=True)
+        sys.exit(128 + STOP[-1])
     print(f"[sweep] finished: {tracker.done + skipped} of {len(runs)} runs done ({skipped} skipped), "
           f"{len(tracker.failed)} failed", flush=True)
     for run, log, code in tracker.failed:
         print(f"  FAILED {run.run_id} (exit {code}): see {log}")
     if tracker.failed:
         sys.exit(1)
+
+
+def stop_line(signum: int, stopped: list[Run], not_started: int, tracker: Tracker, python: str, track_dir: str) -> str:
+    """The one line of a stopped sweep: which runs it stopped and where each continues on the next call."""
+    where = []
+    for run in stopped:
+        command = run.command(python, track_dir)
+        if "--resume" in command:
+            where.append(f"{run.run_id} (resumes from {command[command.index('--resume') + 1]})")
+        else:
+            where.append(f"{run.run_id} (starts over: no checkpoint yet)")
+    parts = [f"stopped {len(stopped)} run(s): {', '.join(where)}" if stopped else "stopped no run"]
+    if not_started:
+        parts.append(f"{not_started} not started")
+    parts.append(f"{tracker.done} done, {len(tracker.failed)} failed")
+    return (f"[sweep] stopped by {signal.Signals(signum).name}: {'; '.join(parts)}; the same command continues "
+            "the unfinished runs")
+
+
+def remove_unresumable(track_dir: str) -> int:
+    """Remove the run folders in a setup's folder that hold no checkpoint (a run killed before its first one):
+    a new start makes its own, and plots would read their partial logs. Returns how many were removed."""
+    removed = 0
+    for folder in glob.glob(os.path.join(glob.escape(track_dir), "*__*__*__*")):
+        if os.path.isdir(folder) and folder.rsplit("__", 1)[1].isdigit() and \
+                not glob.glob(os.path.join(glob.escape(folder), "*.pt")):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed += 1
+    return removed
 
 
 if __name__ == "__main__":

@@ -32,6 +32,39 @@ def test_every_preset_expands_to_the_papers_grid(preset):
             if flag in run.flags:  # budgets scaled by 0.01, never below one rollout
                 original = dict(zip(*[iter(dict((lab, f) for lab, _, f in entries)[run.label].split())] * 2))
                 assert int(run.flags[run.flags.index(flag) + 1]) == max(round(int(original[flag]) * 0.01), 2048)
+        # and a checkpoint cadence scaled with them (the PPO scripts' default 100000: one rollout)
+        assert run.cadence == ([] if run.script in ("cascade_sac.py", "cascade_ddpg.py") else ["--checkpoint-every", "2048"])
+
+
+def test_scale_scales_the_checkpoint_cadence():
+    """Issue 28.4b: with --scale 0.01 a PPO run kept --checkpoint-every 100000, so it wrote no checkpoint before its
+    end and restarted from zero after every kill. The cadence scales with the budget (never below one rollout);
+    the script's default, scaled, is passed where the template leaves it. It is not part of a run's identity."""
+    def one(template, scale):
+        (run,) = sweep.expand(sweep.Args(command=[template], scale=scale))
+        return run
+
+    for script in ("cascade_ppo_continuous.py", "ppo_baseline.py", "cascade_ppo_discrete.py", "ppo_baseline_discrete.py"):
+        assert sweep.default_checkpoint_every(script) == 100_000, script
+    for script in ("cascade_sac.py", "cascade_ddpg.py"):  # no such flag: none is passed
+        assert sweep.default_checkpoint_every(script) is None
+        assert one(f"{script} --n 2 --k 100000", 0.01).cadence == []
+    run = one("cascade_ppo_continuous.py --n 6 --k 1000000", 0.01)
+    assert run.flags == ["--n", "6", "--k", "10000"] and run.cadence == ["--checkpoint-every", "2048"]
+    command = run.command(sys.executable, "/tmp/none")
+    assert command[command.index("--checkpoint-every") + 1] == "2048"
+    assert run.setup_hash == sweep.Run(run.label, run.script, run.flags, run.env_id, run.seed).setup_hash
+    assert one("cascade_ppo_continuous.py --n 6 --k 1000000", 0.1).cadence == ["--checkpoint-every", "10000"]
+    full = one("cascade_ppo_continuous.py --n 6 --k 1000000", 1)  # unscaled: the command as before
+    assert full.cadence == [] and "--checkpoint-every" not in full.command(sys.executable, "/tmp/none")
+    # a cadence in the template scales in place; 0 (checkpoints at iteration ends only) stays 0
+    assert one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 50000", 0.1).flags[-2:] == \
+        ["--checkpoint-every", "5000"]
+    assert one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every=50000", 0.01).flags[-1] == \
+        "--checkpoint-every=2048"
+    explicit = one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 0", 0.01)
+    assert explicit.flags[-2:] == ["--checkpoint-every", "0"] and explicit.cadence == []
+    assert one("ppo_baseline.py --total-timesteps=6000000", 0.01).flags == ["--total-timesteps=60000"]
 
 
 def test_paper_settings_in_presets():
@@ -181,6 +214,6 @@ def test_ray_sweep_on_a_real_local_head(tmp_path):
 def test_progress_eta_is_a_duration_that_can_pass_a_day(capsys):
     tracker = sweep.Tracker(total=5, parallel=1, every=0)
     run = sweep.expand(sweep.Args(preset=["reproduce"], envs=["Hopper-v4"], seeds=["1"]))[0]
-    tracker.started()
+    tracker.started(run)
     tracker.finished(run, 0, "log", seconds=7 * 3600 + 5 * 60)  # 4 runs left at 7 h 05 min each: 28 h 20 min
     assert "ETA about 28 h 20 min left" in capsys.readouterr().out
