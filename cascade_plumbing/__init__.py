@@ -11,6 +11,8 @@ the training loop and what is evaluated. Everything else lives here, once:
   the start of --evaluate;
 - `runs`: seeding and RNG state, run names, resume, stop signals, the command-line entry point;
 - `replay`: the replay buffer of the off-policy scripts;
+- `offpolicy`: the rest the off-policy scripts (SAC, DDPG) share: their common input checks, evaluation
+  episodes, --evaluate of a saved model, and a run's bookkeeping around the training loop;
 - `discrete`: what the two discrete-action scripts share: the discretization of a Box action space (the paper's
   Appendix I), their env stacks and checks, their run folder, their evaluation episodes;
 - `ppo`: what the continuous PPO scripts share: CleanRL's env stack, the checks of their settings, CleanRL's

@@ -61,15 +61,16 @@ class RunRecord:
         self.start_time = time.time()
         self.last_checkpoint_step = 0
 
-    def restore_envs(self, checkpoint: dict) -> tuple[int, np.ndarray]:
-        """Every env's saved state, the RNG streams and the clock; returns (global_step, next_obs)."""
+    def restore_envs(self, checkpoint: dict, note: str = "") -> tuple[int, np.ndarray]:
+        """Every env's saved state, the RNG streams and the clock; returns (global_step, next_obs). `note` ends
+        the line that says so (e.g. " (iteration 3, empty replay buffer)")."""
         global_step = checkpoint["global_step"]
         self.start_time = time.time() - checkpoint["elapsed"]
         self.last_checkpoint_step = global_step
         self.envs.reset(seed=self.args.seed)  # sets up the vector env; then every env gets its saved state back
         self.envs.call("set_state", checkpoint["env_states"])
         set_rng_states(checkpoint["rng"])
-        self.progress.message(f"resumed {checkpoint['path']} at global_step={global_step}")
+        self.progress.message(f"resumed {checkpoint['path']} at global_step={global_step}{note}")
         return global_step, np.asarray(checkpoint["next_obs"], dtype=np.float32)
 
     def sps(self, global_step: int) -> float:

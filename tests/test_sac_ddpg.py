@@ -11,6 +11,7 @@ import torch
 import cascade_ddpg as cd
 import cascade_sac as cs
 import learning_checks
+from cascade_plumbing.replay import buffer_capacity, store_transition
 from helpers import error_line, only_run_dir, read_scalars, run_script
 
 SCRIPTS = {"sac": cs, "ddpg": cd}
@@ -345,13 +346,13 @@ gym.register("CascadeTestCounter-v0", entry_point=CounterEnv, max_episode_steps=
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
 def test_truncation_bootstraps_and_termination_does_not(algo):
     mod = SCRIPTS[algo]
-    envs = mod.make_vector_env("CascadeTestCounter-v0", 0.0)  # no clipping: the counter passes 10
+    envs = mod.make_vector_env([mod.make_env("CascadeTestCounter-v0")])  # no clipping: the counter passes 10
     buffer = mod.ReplayBuffer(10, 1, 1)
     obs, _ = envs.reset(seed=0)
     for a in [0.0, 0.0, 0.0, 0.0, 1.0]:  # 3 steps to the time limit, then 2 steps ending in a termination
         actions = np.array([[a]], dtype=np.float32)
         next_obs, rewards, terminations, truncations, infos = envs.step(actions)
-        mod.store_transition(buffer, obs, actions, next_obs, rewards, terminations, infos)
+        store_transition(buffer, obs, actions, next_obs, rewards, terminations, infos)
         obs = next_obs
     envs.close()
     assert len(buffer) == 5
@@ -396,9 +397,12 @@ def test_humanoid_buffer_memory():
     assert buffer.pos == 0 and len(buffer) == 1
     del buffer
     # an emptied-every-k buffer never holds more than k rows: SAC's default k = 500k needs half of that
-    assert cs.buffer_capacity(cs.Args(env_id="Humanoid-v4")) == 500_000
-    assert cd.buffer_capacity(cd.Args(env_id="Humanoid-v4")) == 1_000_000
-    assert cd.buffer_capacity(cd.Args(keep_buffer=True)) == 1_000_000  # capped at --buffer-size
+    def capacity(args):
+        return buffer_capacity(args.buffer_size, args.n, args.k, args.keep_buffer)
+
+    assert capacity(cs.Args(env_id="Humanoid-v4")) == 500_000
+    assert capacity(cd.Args(env_id="Humanoid-v4")) == 1_000_000
+    assert capacity(cd.Args(keep_buffer=True)) == 1_000_000  # capped at --buffer-size
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,0 +1,269 @@
+"""What the off-policy scripts (cascade_sac.py, cascade_ddpg.py) share and is not their algorithm: the checks of
+the settings they both have, the evaluation episodes, --evaluate of a saved model, and a run's bookkeeping
+(`OffPolicyRun`, on `record.RunRecord`: env steps into the replay buffer, the logs, evaluations, the non-finite
+guard, the checkpoint at the end of every iteration and resuming from it).
+
+What is evaluated, how often and on how many episodes, like the nets, the losses and the training loop, is the
+script's."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+
+from .checkpoints import non_finite_advice
+from .envs import check_env_id
+from .errors import fail
+from .record import RunRecord
+from .replay import ReplayBuffer, available_memory, buffer_capacity, store_transition
+from .tracking import log_new_videos
+
+
+def check_replay_settings(args: Any, bounds_needed_because: str) -> None:
+    """The settings both off-policy scripts have, checked after the script's own: the clipping, the warm-up, the
+    replay buffer (and its memory), the evaluation, the env (a bounded Box action space, flat observations).
+    One line each, before anything is created (`RunRecord` checks the renderer of --capture-video)."""
+    if not args.obs_reward_clip >= 0:
+        fail(f"--obs-reward-clip must be >= 0 (0: no clipping; got {args.obs_reward_clip})")
+    if args.batch_size < 1 or args.learning_starts < 0:
+        fail("--batch-size must be at least 1 and --learning-starts at least 0")
+    if args.k <= args.learning_starts:
+        fail(f"--k {args.k} must exceed --learning-starts {args.learning_starts} (each emptied buffer is first "
+             "filled with learning-starts steps before updates resume)")
+    if args.buffer_size < max(args.batch_size, args.learning_starts + 1):
+        fail(f"--buffer-size {args.buffer_size} must hold at least --batch-size and --learning-starts + 1 rows")
+    if not 0.0 < args.tau <= 1.0:
+        fail(f"--tau must lie in (0, 1] (got {args.tau})")
+    if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
+        fail("--eval-every must be >= 0 and --eval-episodes >= 1")
+    check_env_id(args.env_id, "Hopper-v4, Ant-v5")
+    probe = gym.make(args.env_id)
+    action_space, observation_space = probe.action_space, probe.observation_space
+    probe.close()
+    if not isinstance(action_space, gym.spaces.Box):
+        fail(f"{args.env_id} has a {type(action_space).__name__} action space; this script needs a Box "
+             "(continuous) one: use cascade_ppo_discrete.py")
+    if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
+        fail(f"{args.env_id} has unbounded actions; {bounds_needed_because}")
+    if not isinstance(observation_space, gym.spaces.Box) or len(observation_space.shape) != 1:
+        fail(f"{args.env_id} needs a flat Box observation space (got {observation_space})")
+    rows = buffer_capacity(args.buffer_size, args.n, args.k, args.keep_buffer)
+    need = ReplayBuffer.nbytes(rows, observation_space.shape[0], int(np.prod(action_space.shape)))
+    free = available_memory()
+    if free is not None and need > free:
+        fail(f"the replay buffer needs {need / 1e9:.2f} GB ({rows} rows) but only {free / 1e9:.2f} GB is available; "
+             "lower --buffer-size")
+
+
+# ----------------------------------------------------------------------------------------------
+# Evaluation episodes: a frozen policy on separate envs, with their own seeds and RNG
+# ----------------------------------------------------------------------------------------------
+Policy = Callable[[torch.Tensor, torch.Generator], tuple[torch.Tensor, torch.Tensor]]
+
+
+class Evaluator:
+    """Runs `episodes` episodes side by side on its own envs; never touches the training envs or RNG."""
+
+    def __init__(self, env_id: str, episodes: int, seed: int, obs_clip: float):
+        self.envs = [gym.make(env_id) for _ in range(episodes)]
+        self.seed, self.obs_clip = seed, obs_clip
+
+    @torch.inference_mode()
+    def __call__(self, policy: Policy, call: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Runs `policy` (obs, generator -> action in bounds, fallbacks [m, B]); returns each episode's
+        undiscounted return and the std of each fallback within each episode [episodes, m]. The episodes'
+        seeds and the action noise depend only on (seed, call)."""
+        episodes = len(self.envs)
+        base_seed = self.seed + 100_003 * (call + 1)
+        generator = torch.Generator().manual_seed(base_seed)
+        obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
+        low, high = self.envs[0].action_space.low, self.envs[0].action_space.high
+        returns = np.zeros(episodes)
+        fallbacks: list[list[np.ndarray]] = [[] for _ in range(episodes)]
+        active = list(range(episodes))
+        while active:
+            seen = np.clip(obs[active], -self.obs_clip, self.obs_clip) if self.obs_clip else obs[active]  # as in training
+            action, fallback = policy(torch.as_tensor(seen, dtype=torch.float32), generator)
+            action = np.clip(action.numpy(), low, high)  # float32 rounding of scale*tanh+bias
+            still_active = []
+            for row, i in enumerate(active):
+                fallbacks[i].append(fallback[:, row].numpy())
+                o, r, terminated, truncated, _ = self.envs[i].step(action[row])
+                returns[i] += r
+                obs[i] = o
+                if not (terminated or truncated):
+                    still_active.append(i)
+            active = still_active
+        fallback_std = np.stack([np.stack(f).std(0) for f in fallbacks])
+        return returns, fallback_std
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+def evaluate_saved_policy(args: Any, load_checkpoint: Callable[[str], dict],
+                          policies: Callable[[dict], tuple[Policy, list[Policy]]], mode: str) -> dict:
+    """--evaluate: the policy of the saved model at `args.evaluate` (and with --members each net alone:
+    `policies(checkpoint)` gives both) on --eval-episodes fresh episodes; prints the returns and gives them back.
+    `mode` names how actions are chosen."""
+    if args.eval_episodes < 1:
+        fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
+    checkpoint = load_checkpoint(args.evaluate)
+    saved = checkpoint["args"]
+    torch.set_num_threads(args.torch_threads)
+    full, members = policies(checkpoint)
+    evaluator = Evaluator(saved["env_id"], args.eval_episodes, args.seed, saved["obs_reward_clip"])
+    returns, _ = evaluator(full)
+    print(f"{saved['env_id']}, {len(members)} base net(s), step {checkpoint['global_step']}: "
+          f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
+    result = {"returns": returns, "members": []}
+    if args.members:
+        for net, policy in enumerate(members):
+            member_returns, _ = evaluator(policy)
+            result["members"].append(member_returns)
+            print(f"  net {net + 1} alone: {member_returns.mean():.1f} ± {member_returns.std():.1f}")
+    evaluator.close()
+    return result
+
+
+# ----------------------------------------------------------------------------------------------
+# A run's bookkeeping
+# ----------------------------------------------------------------------------------------------
+class OffPolicyRun(RunRecord):
+    """Everything an off-policy `train` records about a run and restores when it is resumed; no algorithm here.
+
+    Beside the run folder of `RunRecord` (TensorBoard `writer`, W&B, videos, progress, `checkpoint_path`), it
+    steps the training env (`next_obs` is the observation the next action is chosen for) into the replay
+    buffer, runs the evaluations the script asks for, and writes the checkpoint at the end of every iteration,
+    without the replay buffer: a resumed run starts its next iteration with an empty one, as every iteration of
+    standard Cascade does."""
+
+    def __init__(self, args: Any, checkpoint: dict | None, envs: gym.vector.VectorEnv, checkpoint_format: str,
+                 rates: str):
+        """`envs`: the training env, one env with SAME_STEP autoreset; `rates`: the script's learning-rate flags,
+        named by the non-finite guard."""
+        super().__init__(args, checkpoint, envs, total_steps=args.n * args.k)
+        self.checkpoint_format, self.rates = checkpoint_format, rates
+        self.obs_dim = int(np.prod(envs.single_observation_space.shape))
+        self.act_dim = int(np.prod(envs.single_action_space.shape))
+        self.action_low, self.action_high = envs.single_action_space.low, envs.single_action_space.high
+        self.evaluator = None
+        if args.eval_every:
+            self.evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed, args.obs_reward_clip)
+        self.eval_calls = 0
+        self.next_obs: np.ndarray | None = None
+
+    # --- the start of a run, or where a resumed one continues ---
+    def start(self) -> tuple[int, int]:
+        """A new run: the seeded env's first observation; returns (global_step, first iteration) = (0, 1)."""
+        self.start_time = time.time()
+        self.next_obs, _ = self.envs.reset(seed=self.args.seed)
+        self.envs.single_action_space.seed(self.args.seed)  # the uniform random actions at the start of the run
+        return 0, 1
+
+    def restore(self, checkpoint: dict) -> tuple[int, int]:
+        """The checkpoint's env state, next observation, RNG streams and evaluation count (the script restores
+        its nets); returns (global_step, the iteration the run continues with)."""
+        iteration = checkpoint["iteration"] + 1
+        global_step, self.next_obs = self.restore_envs(checkpoint, note=f" (iteration {iteration}, empty replay buffer)")
+        # the uniform random warm-up actions of each new net come from the action space's own RNG
+        self.envs.single_action_space.np_random.bit_generator.state = checkpoint["action_space_rng"]
+        self.eval_calls = checkpoint["eval_calls"]
+        return global_step, iteration
+
+    # --- acting in the training env ---
+    def random_actions(self) -> np.ndarray:
+        """Uniform random actions (the warm-up), from the action space's own seeded RNG."""
+        return np.array([self.envs.single_action_space.sample()])
+
+    def step(self, actions: np.ndarray, buffer: ReplayBuffer, global_step: int) -> None:
+        """One env step: the training episodes that end are logged (raw returns), the transition is stored."""
+        obs = self.next_obs
+        self.next_obs, rewards, terminations, _, infos = self.envs.step(actions)
+        self.episodes(infos, global_step)
+        if self.args.track and "final_info" in infos:  # a video ends with its episode
+            log_new_videos(self.video_folder, self.videos_sent, global_step)
+        store_transition(buffer, obs, actions, self.next_obs, rewards, terminations, infos)
+
+    # --- logging ---
+    def iteration_start(self, iteration: int, size: int, n_params: int, nets: str, global_step: int) -> None:
+        """`nets`: what `n_params` counts, e.g. "actor + critics"."""
+        self.writer.add_scalar("cascade/size", size, global_step)
+        self.writer.add_scalar("cascade/parameters", n_params, global_step)
+        self.progress.message(f"iteration {iteration}/{self.args.n}: {size} base net(s), {n_params} parameters ({nets})")
+
+    def log_fallbacks(self, fallback: torch.Tensor, contribution: torch.Tensor, global_step: int) -> None:
+        """The fallback metrics: means over a batch of states of each net's lambda [n-1, B] and share [n, B]."""
+        mean_weight = contribution.mean(1)
+        for j, lam in enumerate(fallback.mean(1).tolist()):
+            self.writer.add_scalar(f"cascade/fallback/net_{j + 2}", lam, global_step)
+        for j, w in enumerate(mean_weight.tolist()):
+            self.writer.add_scalar(f"cascade/contribution/net_{j + 1}", w, global_step)
+        self.writer.add_scalar("cascade/fallback_product", mean_weight[0].item(), global_step)
+
+    def tick(self, global_step: int, size: int) -> None:
+        """Every 100 steps: the steps per second, and the progress line."""
+        if global_step % 100 == 0:
+            super().tick(global_step, size)
+
+    def guard_non_finite(self, modules: list[nn.Module], global_step: int, iteration: int,
+                         losses: list[float] | None = None) -> None:
+        """The non-finite guard: stop in one line before a non-finite loss or parameter reaches a checkpoint."""
+        if (losses is None or all(map(math.isfinite, losses))) and all(
+            torch.isfinite(p).all() for module in modules for p in module.parameters()
+        ):
+            return
+        self.writer.close()
+        what = "parameters" if losses is None else "loss or parameters"
+        fail(f"non-finite {what} at global_step={global_step} (iteration {iteration}); "
+             f"{non_finite_advice(self.checkpoint_path, self.rates)}")
+
+    # --- evaluation: the script says what is evaluated, and when ---
+    def evaluate(self, step: int, policy: Policy) -> None:
+        """The whole cascade's frozen policy on the evaluation envs."""
+        returns, fallback_std = self.evaluator(policy, self.eval_calls)
+        self.eval_calls += 1
+        self.writer.add_scalar("eval/episodic_return", returns.mean(), step)
+        self.writer.add_scalar("eval/episodic_return_std", returns.std(), step)
+        for j, std in enumerate(fallback_std.mean(0)):
+            self.writer.add_scalar(f"cascade/fallback_std/net_{j + 2}", std, step)
+        self.progress.last_eval = float(returns.mean())
+        self.progress.message(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
+
+    def evaluate_members(self, step: int, policies: list[Policy]) -> None:
+        """Each net acting alone (`members/return/net_i`)."""
+        for net, policy in enumerate(policies, start=1):
+            returns, _ = self.evaluator(policy, self.eval_calls)
+            self.eval_calls += 1
+            self.writer.add_scalar(f"members/return/net_{net}", returns.mean(), step)
+            self.progress.message(f"global_step={step}, members/return/net_{net}={returns.mean():.1f}")
+
+    # --- the end of an iteration, and of the run ---
+    def save_iteration(self, iteration: int, global_step: int, nets: dict) -> None:
+        """The atomic checkpoint of the end of `iteration`, also kept as iteration_<i>.pt: the script's `nets`
+        (its nets, optimizers and whatever else it trains) and the run's state."""
+        payload = {
+            "format": self.checkpoint_format, "args": asdict(self.args), "obs_dim": self.obs_dim,
+            "act_dim": self.act_dim, "action_low": self.action_low, "action_high": self.action_high,
+            "iteration": iteration, **nets, "next_obs": self.next_obs.copy(),
+            "action_space_rng": self.envs.single_action_space.np_random.bit_generator.state,
+            "eval_calls": self.eval_calls,
+        }
+        self.save(payload, global_step, iteration_end=iteration)
+        self.progress.message(f"iteration {iteration} done: global_step={global_step}, "
+                              f"SPS={int(self.sps(global_step))}")
+
+    def close(self, global_step: int) -> None:
+        if self.evaluator is not None:
+            self.evaluator.close()
+        self.envs.close()
+        super().close(global_step)
