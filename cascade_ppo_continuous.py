@@ -41,24 +41,20 @@ import torch.nn as nn
 from torch.distributions import Normal
 
 import cascade_plumbing.checkpoints as checkpoints
-import cascade_plumbing.envs as envs_module
-from cascade_plumbing.envs import OBS_CLIP, check_env_id, make_render_env, normalize_obs, obs_statistics, write_video
+from cascade_plumbing.envs import normalize_obs, obs_statistics
 from cascade_plumbing.errors import fail
-from cascade_plumbing.evaluation import EvaluationRunner
-from cascade_plumbing.fast import (
-    FastPaths,
-    cascade_ppo_gradients,
-    gaussian_entropy,
-    numpy_cascade_policy,
-    share_one_buffer,
+from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, open_saved_model
+from cascade_plumbing.fast import FastPaths, cascade_ppo_gradients, numpy_cascade_policy, share_one_buffer
+from cascade_plumbing.ppo import (
+    check_box_env,
+    check_ppo_settings,
+    count_parameters,
+    log_ppo_update,
+    make_env,  # noqa: F401  (CleanRL's env stack, one env: for the tests and a hacker)
+    make_vector_env,
 )
 from cascade_plumbing.record import RunRecord
-from cascade_plumbing.runs import (
-    check_common_settings,
-    run_main,
-    script_name,
-    seed_everything,
-)
+from cascade_plumbing.runs import check_common_settings, run_main, script_name, seed_everything
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -380,10 +376,6 @@ def make_critic(obs_dim: int) -> TanhMLP:
     return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
 
 
-def count_parameters(*modules: nn.Module) -> int:
-    return sum(p.numel() for m in modules for p in m.parameters())
-
-
 def action_distribution(mean: torch.Tensor, log_std: torch.Tensor) -> Normal:
     """The policy pi(.|s): a diagonal Gaussian. Rollouts, evaluations and videos all sample it (`sample_action`)."""
     return Normal(mean, log_std.exp(), validate_args=False)
@@ -605,13 +597,9 @@ def train(args: Args, checkpoint: dict | None = None,
 # ----------------------------------------------------------------------------------------------
 # Evaluation (paper Appendix B.5): the frozen policy and observation statistics, separate envs, sampled actions
 # ----------------------------------------------------------------------------------------------
-class Evaluator:
-    """Runs `episodes` episodes side by side on its own envs; never touches the training envs."""
-
-    def __init__(self, env_id: str, episodes: int, seed: int, render: bool = False):
-        self.envs = [make_render_env(env_id) if render else gym.make(env_id) for _ in range(episodes)]
-        self.seed = seed
-        self.frames: list[np.ndarray] | None = [] if render else None  # of the first env, with `render`
+class Evaluator(EvaluationEnvs):
+    """Runs `episodes` episodes side by side on its own envs (cascade_plumbing.evaluation.EvaluationEnvs, with
+    `render` for a video); never touches the training envs."""
 
     @torch.inference_mode()
     def __call__(
@@ -625,43 +613,19 @@ class Evaluator:
         raw return and the std of each fallback within each episode [episodes, m]. The episodes'
         seeds and the action noise depend only on (seed, call): evaluation never touches training's RNG."""
         base_seed = self.seed + 100_003 * (call + 1)
+        fallbacks: list[list[np.ndarray]] = [[] for _ in self.envs]
+
+        def act_frozen(raw_obs: np.ndarray, running: list[int]) -> np.ndarray:
+            mean, log_std, fallback = policy(torch.as_tensor(normalize_obs(raw_obs, stats)))
+            for row, i in enumerate(running):
+                fallbacks[i].append(fallback[:, row].numpy())
+            action = action_distribution(mean, log_std).mean if deterministic else sample_action(mean, log_std)
+            return action.numpy()
+
         with torch.random.fork_rng(devices=[]):  # the action noise: sample_action on a stream of its own
             torch.manual_seed(base_seed)
-            return self.run_episodes(policy, stats, base_seed, deterministic)
-
-    def run_episodes(self, policy: Callable, stats: tuple[np.ndarray, np.ndarray] | None, base_seed: int,
-                     deterministic: bool) -> tuple[np.ndarray, np.ndarray]:
-        episodes = len(self.envs)
-        obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
-        if self.frames is not None:
-            self.frames.append(self.envs[0].render())
-        low, high = self.envs[0].action_space.low, self.envs[0].action_space.high
-        returns = np.zeros(episodes)
-        fallbacks: list[list[np.ndarray]] = [[] for _ in range(episodes)]
-        active = list(range(episodes))
-        while active:
-            x = torch.as_tensor(normalize_obs(obs[active], stats))
-            mean, log_std, fallback = policy(x)
-            dist_mean = action_distribution(mean, log_std).mean
-            action = dist_mean if deterministic else sample_action(mean, log_std)
-            action = np.clip(action.numpy(), low, high)
-            still_active = []
-            for row, i in enumerate(active):
-                fallbacks[i].append(fallback[:, row].numpy())
-                o, r, terminated, truncated, _ = self.envs[i].step(action[row])
-                if self.frames is not None and i == 0:
-                    self.frames.append(self.envs[0].render())
-                returns[i] += r
-                obs[i] = o
-                if not (terminated or truncated):
-                    still_active.append(i)
-            active = still_active
-        fallback_std = np.stack([np.stack(f).std(0) for f in fallbacks])
-        return returns, fallback_std
-
-    def close(self) -> None:
-        for env in self.envs:
-            env.close()
+            returns = self.run_episodes(act_frozen, base_seed)
+        return returns, np.stack([np.stack(f).std(0) for f in fallbacks])
 
 
 def full_policy(actor: CascadeActor) -> Callable:
@@ -696,7 +660,7 @@ def record_video(actor: CascadeActor, stats, env_id: str, path: str, determinist
     backend for MuJoCo."""
     evaluator = Evaluator(env_id, 1, seed, render=True)
     returns, _ = evaluator(full_policy(actor), stats, 0, deterministic)
-    write_video(evaluator.frames, path, evaluator.envs[0].metadata.get("render_fps", 30))
+    evaluator.write_video(path)
     evaluator.close()
     return float(returns[0])
 
@@ -718,17 +682,6 @@ def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
 # ==============================================================================================
 # 3. PLUMBING: environments, evaluation, checkpoints, progress, command line
 # ==============================================================================================
-def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0, video: bool = False) -> Callable[[], gym.Env]:
-    """CleanRL's wrapper stack for one env: raw episode stats, action clip, obs/reward normalization, +-10 clips."""
-    return envs_module.make_env(env_id, index, video, gym.wrappers.ClipAction, normalize, gamma, clip=OBS_CLIP)
-
-
-def make_vector_env(args: Args) -> gym.vector.VectorEnv:
-    """One env in this process, or --num-envs > 1 envs stepped in parallel worker processes."""
-    return envs_module.make_vector_env([make_env(args.env_id, args.gamma, args.normalize, i, args.capture_video and i == 0)
-                                        for i in range(args.num_envs)])
-
-
 # ----------------------------------------------------------------------------------------------
 # The run's bookkeeping: TensorBoard, evaluations, checkpoints and resume, progress
 # ----------------------------------------------------------------------------------------------
@@ -790,30 +743,16 @@ class RunLog(RunRecord):
                     b_values: torch.Tensor, b_returns: torch.Tensor, batch_fallback: torch.Tensor,
                     batch_contribution: torch.Tensor, size: int, fast: FastPaths) -> None:
         """CleanRL's scalars and the fallback metrics (paper Section 4.2, Table 1) after one update."""
-        write = self.writer.add_scalar
-        y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
-        var_y = np.var(y_true)
-        explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
-        write("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
-        write("losses/value_loss", parts["value_loss"].item(), global_step)
-        write("losses/policy_loss", parts["policy_loss"].item(), global_step)
-        entropy = parts["entropy"] if "entropy" in parts else gaussian_entropy(parts["log_std"]).mean()
-        write("losses/entropy", entropy.item(), global_step)
-        write("losses/old_approx_kl", old_approx_kl.item(), global_step)
-        write("losses/approx_kl", approx_kl.item(), global_step)
-        write("losses/clipfrac", ((ratios - 1.0).abs() > self.args.clip_coef).float().mean().item(), global_step)
-        write("losses/explained_variance", explained_var, global_step)
+        log_ppo_update(self.writer, global_step, optimizer, parts, old_approx_kl, approx_kl, ratios, b_values,
+                       b_returns, self.args.clip_coef, fast)
         # means over the rollout batch, of the lambdas/weights the acting policy used
         mean_weight = batch_contribution.mean(1)
         for j, lam in enumerate(batch_fallback.mean(1).tolist()):
-            write(f"cascade/fallback/net_{j + 2}", lam, global_step)
+            self.writer.add_scalar(f"cascade/fallback/net_{j + 2}", lam, global_step)
         for j, w in enumerate(mean_weight.tolist()):
-            write(f"cascade/contribution/net_{j + 1}", w, global_step)
-        write("cascade/fallback_product", mean_weight[0].item(), global_step)
-        write("cascade/size", size, global_step)
-        write("charts/fast_acting", float(fast.acting), global_step)
-        write("charts/fast_gradients", float(fast.gradients), global_step)
-        write("charts/fast_path_check_seconds", fast.check_seconds, global_step)
+            self.writer.add_scalar(f"cascade/contribution/net_{j + 1}", w, global_step)
+        self.writer.add_scalar("cascade/fallback_product", mean_weight[0].item(), global_step)
+        self.writer.add_scalar("cascade/size", size, global_step)
         self.tick(global_step, size)
 
     def iteration_done(self, iteration: int, global_step: int) -> None:
@@ -913,44 +852,18 @@ def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") 
 def validate(args: Args) -> None:
     """Reject bad input with one clear line before anything is created."""
     check_common_settings(args)
-    if not args.learning_rate >= 0:
-        fail(f"--learning-rate must be >= 0 (got {args.learning_rate})")
-    if args.num_minibatches < 1 or args.update_epochs < 1:
-        fail(f"--num-minibatches and --update-epochs must be at least 1 (got {args.num_minibatches}, {args.update_epochs})")
     if args.n < 1:
         fail(f"--n must be at least 1 (got {args.n})")
     if not 0.0 < args.fallback_init < 1.0:
         fail(f"--fallback-init must lie strictly between 0 and 1 (got {args.fallback_init})")
     if args.hidden_size < 1 or args.num_layers < 1:
         fail("--hidden-size and --num-layers must be at least 1")
-    if args.num_envs < 1:
-        fail(f"--num-envs must be at least 1 (got {args.num_envs})")
-    steps_defaulted = args.num_steps is None
-    if steps_defaulted:
-        args.num_steps = max(2048 // args.num_envs, 1)
-    if args.num_steps < 1:
-        fail(f"--num-steps must be at least 1 (got {args.num_steps})")
-    batch_size = args.num_envs * args.num_steps
+    batch_size = check_ppo_settings(args)
     if args.k < batch_size:
         fail(f"--k {args.k} is smaller than one rollout batch (num_envs*num_steps = {batch_size}); raise --k")
-    if batch_size % args.num_minibatches:
-        hint = ""
-        if steps_defaulted:  # the batch is 2048 // num_envs * num_envs: say which --num-envs keep it whole
-            working = [e for e in range(1, 17) if (2048 // e * e) % args.num_minibatches == 0]
-            hint = f"; with --num-minibatches {args.num_minibatches}, --num-envs {', '.join(map(str, working))} work"
-        fail(f"the batch size {batch_size} (num_envs*num_steps) is not divisible by --num-minibatches "
-             f"{args.num_minibatches}{hint}, or set --num-steps")
     if args.freeze_previous and args.start_full:
         fail("--freeze-previous and --start-full cannot be combined (no such ablation in the paper)")
-    if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
-        fail("--eval-every must be >= 0 and --eval-episodes >= 1")
-    check_env_id(args.env_id)
-    probe = gym.make(args.env_id)
-    action_space = probe.action_space
-    probe.close()
-    if not isinstance(action_space, gym.spaces.Box):
-        fail(f"{args.env_id} has a {type(action_space).__name__} action space; this script needs a Box "
-             "(continuous) one: use cascade_ppo_discrete.py")
+    check_box_env(args.env_id)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -958,13 +871,8 @@ def validate(args: Args) -> None:
 # ----------------------------------------------------------------------------------------------
 def evaluate_saved(args: Args) -> dict:
     """--evaluate: the saved policy with its saved observation statistics frozen."""
-    if args.eval_episodes < 1:
-        fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
-    checkpoint = load_checkpoint(args.evaluate)
+    checkpoint = open_saved_model(args, load_checkpoint)
     saved = Args(**checkpoint["args"])
-    if args.capture_video:
-        make_render_env(saved.env_id).close()  # fail early, before any episode is run
-    torch.set_num_threads(args.torch_threads)
     actor = actor_from_checkpoint(checkpoint)
     stats = checkpoint["obs_stats"]
     evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed)

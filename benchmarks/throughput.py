@@ -79,7 +79,10 @@ def measure_training(script, args, updates: int, warmup: int) -> float:
         if len(marks) == warmup + updates:
             raise Stop
 
-    script.Progress.update = record
+    progress = getattr(script, "Progress", None)  # a script of an older commit has its own
+    if progress is None:
+        from cascade_plumbing.tracking import Progress as progress
+    progress.update = record
     try:
         script.train(args)
     except Stop:

@@ -339,12 +339,18 @@ def mlp_ppo_gradients(actor: nn.Module, critic: nn.Module, minibatch: tuple, arg
 def numpy_gaussian_sampler(policy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
                            ) -> Callable[[np.ndarray], np.ndarray]:
     """obs -> a sample of Normal(mean, exp(log_std)) as torch's `Normal.sample()` draws it: one standard normal
-    per action entry from torch's RNG (the same draws, in the same order), then mean + std * noise."""
+    per action entry from torch's RNG (the same draws, in the same order: `normal_` on a tensor of the actions'
+    shape), then mean + std * noise. The noise tensor is reused (its numpy view costs nothing per step)."""
+    noise, noise_np = torch.empty(0), np.empty(0)
 
     def sample(obs: np.ndarray) -> np.ndarray:
+        nonlocal noise, noise_np
         mean, log_std = policy(obs)
-        noise = torch.randn(mean.shape, dtype=torch.float64 if mean.dtype == np.float64 else torch.float32)
-        return mean + np.exp(log_std) * noise.numpy()
+        if noise_np.shape != mean.shape or noise_np.dtype != mean.dtype:
+            noise = torch.from_numpy(np.empty(mean.shape, mean.dtype))
+            noise_np = noise.numpy()
+        noise.normal_()
+        return mean + np.exp(log_std) * noise_np
 
     return sample
 

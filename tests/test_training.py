@@ -8,7 +8,7 @@ import torch
 
 import cascade_ppo_continuous as cpc
 import learning_checks
-from cascade_plumbing.envs import find_wrapper
+from cascade_plumbing.envs import OBS_CLIP, find_wrapper
 from helpers import error_line, only_run_dir, read_scalars, run_script
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
@@ -111,7 +111,7 @@ def test_frozen_eval_normalization_equals_the_training_wrapper():
     norm.update_running_mean = False
     stats = (norm.obs_rms.mean.copy(), norm.obs_rms.var.copy())
     raw = np.random.default_rng(0).normal(size=env.observation_space.shape) * 5
-    through_wrappers = np.clip(norm.observation(raw), -cpc.OBS_CLIP, cpc.OBS_CLIP)
+    through_wrappers = np.clip(norm.observation(raw), -OBS_CLIP, OBS_CLIP)
     np.testing.assert_allclose(cpc.normalize_obs(raw[None], stats)[0], through_wrappers, rtol=1e-6, atol=1e-6)
 
 
