@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import tyro
 
-from .checkpoints import CHECKPOINT_NAME
+from .checkpoints import CHECKPOINT_NAME, repair_iteration_files
 from .errors import fail
 from .tracking import check_wandb, finish_wandb
 
@@ -184,6 +184,8 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         checkpoint = load_checkpoint(args.resume)
         args = resumed_args(args, checkpoint, explicit_fields(args_type, sys.argv[1:]))
         if finished(args, checkpoint):
+            if "iteration" in checkpoint:  # a kill while the last iteration_<i>.pt was copied: rebuild it all the same
+                repair_iteration_files(os.path.dirname(checkpoint["path"]), checkpoint, at_iteration_end=True)
             print(f"{checkpoint['path']} is the end of the run (global_step={checkpoint['global_step']}); "
                   "nothing to resume")
             return
