@@ -149,9 +149,39 @@ def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, un
         assert effect > max(10 * rounding, 1e-6), (effect, rounding)
 
 
-def test_copy_of_a_script_runs_alone(tmp_path):
-    """A copy elsewhere needs nothing else from the repository (single-file scripts)."""
-    shutil.copy(os.path.join(ROOT, "ppo_baseline.py"), tmp_path / "mine.py")
-    proc = subprocess.run([sys.executable, str(tmp_path / "mine.py"), "--help"], capture_output=True, text=True,
-                          cwd=tmp_path, timeout=120)
-    assert proc.returncode == 0 and "--autograd" in proc.stdout
+COPY_FLAGS = ["--env-id", "InvertedPendulum-v4", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "1",
+              "--eval-every", "0", "--checkpoint-every", "0", "--quiet"]
+COPY_BUDGET = {"cascade_ppo_continuous.py": ["--n", "1", "--k", "256"], "ppo_baseline.py": ["--total-timesteps", "256"]}
+
+
+@pytest.mark.parametrize("script", ["cascade_ppo_continuous.py", "ppo_baseline.py"])
+def test_a_copy_in_the_repository_root_runs_and_names_its_runs(script, tmp_path):
+    """`cp cascade_ppo_continuous.py my_idea.py` in the repository root runs as is, and its runs are named after
+    the copy (the default --exp-name is the file name), so plots/ keeps them apart from the original's."""
+    name = f"my_idea_{os.getpid()}"
+    copy = os.path.join(ROOT, f"{name}.py")
+    shutil.copy(os.path.join(ROOT, script), copy)
+    try:
+        proc = subprocess.run([sys.executable, copy, *COPY_FLAGS, *COPY_BUDGET[script], "--track-dir", str(tmp_path)],
+                              capture_output=True, text=True, cwd=ROOT, timeout=300)
+    finally:
+        os.remove(copy)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (run_dir,) = os.listdir(tmp_path)
+    assert run_dir.startswith(f"InvertedPendulum-v4__{name}__1__"), run_dir
+
+
+def test_a_copy_elsewhere_runs_once_the_package_is_installed(tmp_path):
+    """A copy in any other folder imports the shared plumbing from the installed package (`pip install -e .`, which
+    `pip install -r requirements.txt` does): it trains, from that folder, with nothing else copied."""
+    shutil.copy(os.path.join(ROOT, "cascade_ppo_continuous.py"), tmp_path / "mine.py")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run([sys.executable, str(tmp_path / "mine.py"), *COPY_FLAGS, "--n", "1", "--k", "256",
+                           "--track-dir", str(tmp_path / "runs")], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (run_dir,) = os.listdir(tmp_path / "runs")
+    assert "__mine__" in run_dir
+    help_text = subprocess.run([sys.executable, str(tmp_path / "mine.py"), "--help"], capture_output=True, text=True,
+                               cwd=tmp_path, timeout=120, env=env)
+    assert help_text.returncode == 0 and "--autograd" in help_text.stdout
