@@ -37,13 +37,11 @@ import torch
 import torch.nn as nn
 
 from cascade_plumbing import checkpoints
-from cascade_plumbing.checkpoints import atomic_copy, save_checkpoint
 from cascade_plumbing.discrete import (  # noqa: F401 (MAX_DISCRETIZED_DIMS, DiscretizeAction, discretize_problem, make_env, normalize_obs: the tests reach them here)
     MAX_DISCRETIZED_DIMS,
+    DiscreteRun,
     DiscretizeAction,
     EvaluationEpisodes,
-    RunFolder,
-    check_ppo_settings,
     discretize_problem,
     evaluate_saved_model,
     make_env,
@@ -53,7 +51,8 @@ from cascade_plumbing.discrete import (  # noqa: F401 (MAX_DISCRETIZED_DIMS, Dis
 )
 from cascade_plumbing.envs import find_wrapper, obs_statistics  # noqa: F401 (find_wrapper: for the tests)
 from cascade_plumbing.errors import fail
-from cascade_plumbing.runs import run_main, seed_everything, set_rng_states
+from cascade_plumbing.ppo import check_ppo_settings
+from cascade_plumbing.runs import check_common_settings, run_main, seed_everything
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -415,8 +414,8 @@ def train(args: Args, checkpoint: dict | None = None,
             f"{updates_per_iteration} updates = {updates_per_iteration * batch_size} steps")
     say(f"{args.env_id}: {num_actions} discrete actions"
         f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
-    run = RunFolder(args, checkpoint, envs,
-                    at_iteration_end=None if checkpoint is None else checkpoint["updates_done"] == updates_per_iteration)
+    run = DiscreteRun(args, checkpoint, envs, total_updates * batch_size,
+                      at_iteration_end=checkpoint is not None and checkpoint["updates_done"] == updates_per_iteration)
     writer = run.writer
 
     actor = CascadeActor(obs_dim, num_actions, args.hidden_size, args.num_layers, args.fallback_init).to(device)
@@ -449,10 +448,6 @@ def train(args: Args, checkpoint: dict | None = None,
     critic: nn.Module | None = None
     optimizer: torch.optim.Optimizer | None = None
 
-    def make_checkpoint(iteration: int, updates_done: int) -> dict:
-        return checkpoint_payload(run.state(CHECKPOINT_FORMAT, global_step, next_obs, next_done, eval_calls), actor,
-                                  critic, optimizer, iteration, updates_done, obs_dim, num_actions, discretize)
-
     next_obs, next_done = run.start_envs(checkpoint, device)
     if checkpoint is None:
         global_step, start_iteration, start_update = 0, 1, 1
@@ -464,9 +459,6 @@ def train(args: Args, checkpoint: dict | None = None,
         start_iteration, start_update = checkpoint["iteration"], checkpoint["updates_done"] + 1
         if start_update > updates_per_iteration:  # saved at the end of an iteration
             start_iteration, start_update = start_iteration + 1, 1
-        set_rng_states(checkpoint["rng"])
-        say(f"resumed {checkpoint['path']} at global_step={global_step}")
-    last_checkpoint_step = global_step
 
     if checkpoint is not None and args.start_full:
         critic = saved_critic(checkpoint, obs_dim, device)  # --start-full keeps one critic for the whole run
@@ -524,7 +516,7 @@ def train(args: Args, checkpoint: dict | None = None,
                 next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
                 next_done = torch.as_tensor(np.logical_or(terminations, truncations), dtype=torch.float32,
                                             device=device)
-                run.log_episodes(infos, global_step)
+                run.episodes(infos, global_step)
                 if episodes is not None and global_step % args.eval_every < args.num_envs:
                     evaluate_and_log(global_step)
 
@@ -550,15 +542,13 @@ def train(args: Args, checkpoint: dict | None = None,
             run.log_update(scalars, global_step)
             run.stop_if_not_finite(loss, params, global_step, f"iteration {iteration}, update {update}")
 
-            if update == updates_per_iteration:
-                save_checkpoint(run.checkpoint_path, make_checkpoint(iteration, update))
-                atomic_copy(run.checkpoint_path, os.path.join(run.run_dir, f"iteration_{iteration}.pt"))
-                last_checkpoint_step = global_step
-            elif args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every:
-                save_checkpoint(run.checkpoint_path, make_checkpoint(iteration, update))
-                last_checkpoint_step = global_step
+            end_of_iteration = update == updates_per_iteration
+            if end_of_iteration or run.checkpoint_due(global_step):  # at an iteration's end also iteration_<i>.pt
+                run.save_state(CHECKPOINT_FORMAT, global_step, next_obs, next_done, eval_calls,
+                               learner_state(actor, critic, optimizer, iteration, update, obs_dim, num_actions,
+                                             discretize), iteration if end_of_iteration else None)
 
-        say(f"iteration {iteration} done: global_step={global_step}, SPS={run.sps(global_step)}")
+        say(f"iteration {iteration} done: global_step={global_step}, SPS={int(run.sps(global_step))}")
 
     if episodes is not None and global_step % args.eval_every >= args.num_envs:
         evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
@@ -593,6 +583,7 @@ CHECKPOINT_FORMAT = "cascade_ppo_discrete/1"
 def resolve(args: Args) -> tuple[bool, bool]:
     """Probe the env and reject bad input with one clear line before anything is created.
     Returns (discretize, normalize) as they apply to this env."""
+    check_common_settings(args)
     batch_size = check_ppo_settings(args)
     if args.n < 1:
         fail(f"--n must be at least 1 (got {args.n})")
@@ -607,10 +598,10 @@ def resolve(args: Args) -> tuple[bool, bool]:
     return resolve_env(args, continuous_script="cascade_ppo_continuous.py")
 
 
-def checkpoint_payload(run_state: dict, actor: CascadeActor, critic: nn.Module, optimizer: torch.optim.Optimizer,
-                       iteration: int, updates_done: int, obs_dim: int, num_actions: int, discretize: bool) -> dict:
-    """A checkpoint: the run's state (`RunFolder.state`: settings, envs, RNG, evaluations) and the learner's."""
-    return {**run_state, "obs_dim": obs_dim, "num_actions": num_actions, "discretize": discretize,
+def learner_state(actor: CascadeActor, critic: nn.Module, optimizer: torch.optim.Optimizer, iteration: int,
+                  updates_done: int, obs_dim: int, num_actions: int, discretize: bool) -> dict:
+    """What a checkpoint holds of the learner (the run's state beside it: `DiscreteRun.save_state`)."""
+    return {"obs_dim": obs_dim, "num_actions": num_actions, "discretize": discretize,
             "iteration": iteration, "updates_done": updates_done, "actor": actor.state_dict(), "actor_size": actor.size,
             "num_frozen": actor.num_frozen, "critic": critic.state_dict(), "optimizer": optimizer.state_dict()}
 

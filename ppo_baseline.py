@@ -483,8 +483,7 @@ class RunLog(RunRecord):
             updates = args.total_timesteps // batch_size
             print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
                   f"the run does {updates} updates = {updates * batch_size} steps")
-        # a PPO run has no iterations, so no iteration_<i>.pt to repair: as a run with none finished
-        super().__init__(args, None if checkpoint is None else {**checkpoint, "iteration": 0}, envs, total_steps)
+        super().__init__(args, checkpoint, envs, total_steps, iteration_files=False)  # a PPO run has no iterations
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self.runner = EvaluationRunner(
             partial(Evaluator, args.env_id, args.eval_episodes, args.seed),

@@ -30,13 +30,11 @@ import torch
 import torch.nn as nn
 
 from cascade_plumbing import checkpoints
-from cascade_plumbing.checkpoints import save_checkpoint
 from cascade_plumbing.discrete import (  # noqa: F401 (MAX_DISCRETIZED_DIMS, DiscretizeAction, discretize_problem, make_env, normalize_obs: the tests reach them here)
     MAX_DISCRETIZED_DIMS,
+    DiscreteRun,
     DiscretizeAction,
     EvaluationEpisodes,
-    RunFolder,
-    check_ppo_settings,
     discretize_problem,
     evaluate_saved_model,
     make_env,
@@ -46,7 +44,8 @@ from cascade_plumbing.discrete import (  # noqa: F401 (MAX_DISCRETIZED_DIMS, Dis
 )
 from cascade_plumbing.envs import obs_statistics
 from cascade_plumbing.errors import fail
-from cascade_plumbing.runs import run_main, seed_everything, set_rng_states
+from cascade_plumbing.ppo import check_ppo_settings
+from cascade_plumbing.runs import check_common_settings, run_main, seed_everything
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -292,7 +291,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             f"the run does {total_updates} updates = {total_updates * batch_size} steps")
     say(f"{args.env_id}: {num_actions} discrete actions"
         f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
-    run = RunFolder(args, checkpoint, envs)
+    run = DiscreteRun(args, checkpoint, envs, total_updates * batch_size)
 
     actor = make_actor(obs_dim, num_actions, args.hidden_size).to(device)
     critic = make_critic(obs_dim).to(device)
@@ -330,9 +329,6 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         actor.load_state_dict(checkpoint["actor"])
         critic.load_state_dict(checkpoint["critic"])
         optimizer.load_state_dict(checkpoint["optimizer"])
-        set_rng_states(checkpoint["rng"])
-        say(f"resumed {checkpoint['path']} at global_step={global_step}")
-    last_checkpoint_step = global_step
 
     for update in range(start_update, total_updates + 1):
         if args.lr_schedule == "global":
@@ -361,7 +357,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             rewards[step] = torch.as_tensor(reward, device=device)
             next_obs = torch.as_tensor(next_obs_np, dtype=torch.float32, device=device)
             next_done = torch.as_tensor(np.logical_or(terminations, truncations), dtype=torch.float32, device=device)
-            run.log_episodes(infos, global_step)
+            run.episodes(infos, global_step)
             if episodes is not None and global_step % args.eval_every < args.num_envs:
                 evaluate_and_log(global_step)
 
@@ -375,12 +371,9 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         loss, scalars = ppo_update(actor, critic, optimizer, batch, args)
         run.log_update(scalars, global_step)  # CleanRL's names
         run.stop_if_not_finite(loss, params, global_step, f"update {update}")
-        if update == total_updates or (
-                args.checkpoint_every and global_step - last_checkpoint_step >= args.checkpoint_every):
-            save_checkpoint(run.checkpoint_path, checkpoint_payload(
-                run.state(CHECKPOINT_FORMAT, global_step, next_obs, next_done, eval_calls), actor, critic, optimizer,
-                update, obs_dim, num_actions, discretize))
-            last_checkpoint_step = global_step
+        if update == total_updates or run.checkpoint_due(global_step):
+            run.save_state(CHECKPOINT_FORMAT, global_step, next_obs, next_done, eval_calls,
+                           learner_state(actor, critic, optimizer, update, obs_dim, num_actions, discretize))
 
     if episodes is not None and global_step % args.eval_every >= args.num_envs:
         evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
@@ -409,6 +402,7 @@ CHECKPOINT_FORMAT = "ppo_baseline_discrete/1"
 def resolve(args: Args) -> tuple[bool, bool]:
     """Probe the env and reject bad input with one clear line before anything is created.
     Returns (discretize, normalize) as they apply to this env."""
+    check_common_settings(args)
     batch_size = check_ppo_settings(args)
     if args.hidden_size < 1:
         fail(f"--hidden-size must be at least 1 (got {args.hidden_size})")
@@ -420,10 +414,10 @@ def resolve(args: Args) -> tuple[bool, bool]:
     return resolve_env(args, continuous_script="ppo_baseline.py")
 
 
-def checkpoint_payload(run_state: dict, actor: nn.Module, critic: nn.Module, optimizer: torch.optim.Optimizer,
-                       updates_done: int, obs_dim: int, num_actions: int, discretize: bool) -> dict:
-    """A checkpoint: the run's state (`RunFolder.state`: settings, envs, RNG, evaluations) and the learner's."""
-    return {**run_state, "obs_dim": obs_dim, "num_actions": num_actions, "discretize": discretize,
+def learner_state(actor: nn.Module, critic: nn.Module, optimizer: torch.optim.Optimizer, updates_done: int,
+                  obs_dim: int, num_actions: int, discretize: bool) -> dict:
+    """What a checkpoint holds of the learner (the run's state beside it: `DiscreteRun.save_state`)."""
+    return {"obs_dim": obs_dim, "num_actions": num_actions, "discretize": discretize,
             "updates_done": updates_done, "actor": actor.state_dict(), "critic": critic.state_dict(),
             "optimizer": optimizer.state_dict()}
 

@@ -1,13 +1,12 @@
 """What the discrete-action scripts (cascade_ppo_discrete.py, ppo_baseline_discrete.py) share and is not the
 algorithm: the discretization of a Box action space into the 2^A corners of its box (the paper's Appendix I),
-their env stacks, the checks of their settings and env, their run folder (TensorBoard, W&B, videos, checkpoint,
-resume), and the evaluation episodes of the paper's protocol (Appendix B.5) that their evaluations run."""
+their env stacks, the checks of their env (their PPO settings: ppo.check_ppo_settings), their run's bookkeeping
+(on record.RunRecord), and the evaluation episodes of the paper's protocol (Appendix B.5) that their evaluations
+run (on evaluation.EvaluationEnvs)."""
 
 from __future__ import annotations
 
 import math
-import os
-import time
 from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any
@@ -17,11 +16,11 @@ import numpy as np
 import torch
 
 from . import envs as plumbing_envs
-from .checkpoints import CHECKPOINT_NAME, non_finite_advice, repair_iteration_files
-from .envs import OBS_CLIP, check_env_id, make_render_env, obs_statistics
+from .checkpoints import non_finite_advice
+from .envs import OBS_CLIP, check_env_id, obs_statistics
 from .errors import fail
-from .runs import check_common_settings, rng_states, run_name
-from .tracking import finish_wandb, log_new_videos, log_training_episodes, open_run_log
+from .evaluation import EvaluationEnvs
+from .record import RunRecord
 
 MAX_DISCRETIZED_DIMS = 10  # 2^10 = 1024 actions; Humanoid's 17 dims (131072 actions) are out of scope
 
@@ -93,25 +92,8 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None, 
 
 
 # ----------------------------------------------------------------------------------------------
-# The checks both scripts make before anything is created
+# The env check both scripts make before anything is created
 # ----------------------------------------------------------------------------------------------
-def check_ppo_settings(args: Any) -> int:
-    """The settings both discrete PPO scripts share, refused in one line each; returns the rollout batch size."""
-    check_common_settings(args)
-    if not args.learning_rate >= 0:
-        fail(f"--learning-rate must be >= 0 (got {args.learning_rate})")
-    if args.num_minibatches < 1 or args.update_epochs < 1:
-        fail(f"--num-minibatches and --update-epochs must be at least 1 (got {args.num_minibatches}, {args.update_epochs})")
-    if args.num_envs < 1 or args.num_steps < 1:
-        fail("--num-envs and --num-steps must be at least 1")
-    batch_size = args.num_envs * args.num_steps
-    if batch_size % args.num_minibatches:
-        fail(f"the batch size {batch_size} is not divisible by --num-minibatches {args.num_minibatches}")
-    if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
-        fail("--eval-every must be >= 0 and --eval-episodes >= 1")
-    return batch_size
-
-
 def resolve_env(args: Any, continuous_script: str) -> tuple[bool, bool]:
     """Probe --env-id and refuse what a discrete script cannot run, in one line (`continuous_script`: the one to
     use instead for a Box task with --discretize off). Returns (discretize, normalize) as they apply to this env."""
@@ -121,8 +103,6 @@ def resolve_env(args: Any, continuous_script: str) -> tuple[bool, bool]:
     probe.close()
     if not isinstance(observation_space, gym.spaces.Box):
         fail(f"{args.env_id} has a {type(observation_space).__name__} observation space; this script needs a Box one")
-    if args.capture_video:
-        make_render_env(args.env_id).close()  # no renderer (OpenGL backend, pygame): one line now, not a traceback later
     if isinstance(action_space, gym.spaces.Discrete):
         if args.discretize == "on":
             fail(f"--discretize on needs a Box action space, but {args.env_id} is already discrete "
@@ -143,64 +123,46 @@ def resolve_env(args: Any, continuous_script: str) -> tuple[bool, bool]:
 
 
 # ----------------------------------------------------------------------------------------------
-# The run folder: TensorBoard, W&B, videos, the checkpoint and resume
+# The run's bookkeeping: record.RunRecord (folder, TensorBoard, W&B, videos, checkpoint, resume)
 # ----------------------------------------------------------------------------------------------
-class RunFolder:
-    """`<track-dir>/<run_name>` and what a run records there: TensorBoard (CleanRL's names; W&B mirrors it with
-    --track), --capture-video's videos, the checkpoint. A resumed run continues its own folder (and W&B run)."""
+class DiscreteRun(RunRecord):
+    """`<track-dir>/<run_name>` and what a discrete script's run records there (`RunRecord`: TensorBoard with
+    CleanRL's names, W&B with --track, --capture-video's videos, the checkpoint; a resumed run continues its own
+    folder and W&B run). No progress line: the scripts print their own messages."""
 
-    def __init__(self, args: Any, checkpoint: dict | None, envs: gym.vector.VectorEnv,
+    def __init__(self, args: Any, checkpoint: dict | None, envs: gym.vector.VectorEnv, total_steps: int,
                  at_iteration_end: bool | None = None):
         """`at_iteration_end`: for a script that keeps an iteration_<i>.pt per iteration, whether `checkpoint`
-        was written at the end of one (its missing or damaged iteration files are rebuilt, or named)."""
-        self.args, self.envs = args, envs
-        if checkpoint is None:
-            self.run_dir = os.path.join(args.track_dir, run_name(args))
-        else:
-            self.run_dir = os.path.dirname(checkpoint["path"])
-            if at_iteration_end is not None:
-                repair_iteration_files(self.run_dir, checkpoint, at_iteration_end)
-        self.writer, self.wandb_run_id, self.video_folder, self.videos_sent = open_run_log(args, checkpoint,
-                                                                                           self.run_dir, envs)
-        self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT_NAME)
-        self.start_time = time.time() if checkpoint is None else time.time() - checkpoint["elapsed"]
+        was written at the end of one (its missing or damaged iteration files are rebuilt, or named); None for a
+        script without iteration files."""
+        super().__init__(args, checkpoint, envs, total_steps, at_iteration_end=bool(at_iteration_end),
+                         iteration_files=at_iteration_end is not None, progress_line=False)
 
     def start_envs(self, checkpoint: dict | None, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        """The training envs as a new run starts them (reset with --seed) or as `checkpoint` left them; returns
-        the next observations and dones."""
+        """The training envs as a new run starts them (reset with --seed) or as `checkpoint` left them (with the
+        RNG streams and the clock: `RunRecord.restore_envs`); returns the next observations and dones."""
         if checkpoint is None:
             next_obs, _ = self.envs.reset(seed=self.args.seed)
             self.envs.action_space.seed(self.args.seed)
             return (torch.as_tensor(next_obs, dtype=torch.float32, device=device),
                     torch.zeros(self.args.num_envs, device=device))
-        self.envs.reset(seed=self.args.seed)  # sets up the vector env; then every env gets its saved state back
-        self.envs.call("set_state", checkpoint["env_states"])
-        return checkpoint["next_obs"].to(device), checkpoint["next_done"].to(device)
+        _, next_obs = self.restore_envs(checkpoint)
+        return torch.as_tensor(next_obs, device=device), checkpoint["next_done"].to(device)
 
-    def state(self, checkpoint_format: str, global_step: int, next_obs: torch.Tensor, next_done: torch.Tensor,
-              eval_calls: int) -> dict:
-        """What a checkpoint holds besides the learner's own state: where the envs, the RNG streams and the
-        evaluations are, to continue exactly."""
-        return {
-            "format": checkpoint_format, "args": asdict(self.args), "global_step": global_step,
-            "elapsed": time.time() - self.start_time, "obs_stats": obs_statistics(self.envs),
-            "env_states": self.envs.call("get_state"), "next_obs": next_obs.cpu(), "next_done": next_done.cpu(),
-            "rng": rng_states(), "eval_calls": eval_calls, "wandb_run_id": self.wandb_run_id,
-        }
-
-    def sps(self, global_step: int) -> int:
-        return int(global_step / (time.time() - self.start_time))
-
-    def log_episodes(self, infos: dict, global_step: int) -> None:
-        log_training_episodes(self.writer, infos, global_step)
+    def save_state(self, checkpoint_format: str, global_step: int, next_obs: torch.Tensor, next_done: torch.Tensor,
+                   eval_calls: int, learner: dict, iteration_end: int | None = None) -> None:
+        """The checkpoint: the `learner`'s state and what continues the run exactly (the settings, the envs'
+        statistics and next observations, the evaluations; `RunRecord.save` adds the env states, RNG streams,
+        clock and W&B run id); at the end of iteration `iteration_end` also as iteration_<i>.pt."""
+        self.save({"format": checkpoint_format, "args": asdict(self.args), "obs_stats": obs_statistics(self.envs),
+                   "next_obs": next_obs.cpu(), "next_done": next_done.cpu(), "eval_calls": eval_calls, **learner},
+                  global_step, iteration_end)
 
     def log_update(self, scalars: dict[str, float], global_step: int) -> None:
-        """An update's scalars, the SPS, and (--track --capture-video) the training videos finished since."""
+        """An update's scalars, then the SPS and (--track --capture-video) the training videos finished since."""
         for tag, value in scalars.items():
             self.writer.add_scalar(tag, value, global_step)
-        self.writer.add_scalar("charts/SPS", self.sps(global_step), global_step)
-        if self.args.track:
-            log_new_videos(self.video_folder, self.videos_sent, global_step)
+        self.tick(global_step, 0)
 
     def stop_if_not_finite(self, loss: torch.Tensor, params: list[torch.Tensor], global_step: int, where: str) -> None:
         """The non-finite guard: stop before anything bad is written to the checkpoint."""
@@ -215,22 +177,19 @@ class RunFolder:
         if episodes is not None:
             episodes.close()
         self.envs.close()
-        self.writer.close()
-        if self.args.track:
-            log_new_videos(self.video_folder, self.videos_sent, global_step)
-            finish_wandb(exit_code=0)
+        super().close(global_step)
 
 
 # ----------------------------------------------------------------------------------------------
-# Evaluation episodes (Appendix B.5)
+# Evaluation episodes (Appendix B.5): evaluation.EvaluationEnvs
 # ----------------------------------------------------------------------------------------------
-class EvaluationEpisodes:
+class EvaluationEpisodes(EvaluationEnvs):
     """`episodes` episodes run side by side on envs of their own (never the training envs or RNG), as the paper
     evaluates (Appendix B.5): the policy frozen with its observation statistics, the undiscounted raw return."""
 
     def __init__(self, env_id: str, episodes: int, seed: int, discretize: bool):
-        self.envs = [DiscretizeAction(gym.make(env_id)) if discretize else gym.make(env_id) for _ in range(episodes)]
-        self.seed, self.discretize = seed, discretize
+        super().__init__(env_id, episodes, seed, wrap=DiscretizeAction if discretize else None)
+        self.discretize = discretize
 
     @torch.inference_mode()
     def run(self, policy: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]],
@@ -241,35 +200,20 @@ class EvaluationEpisodes:
         argmax with `deterministic`). Returns each episode's return and its steps' kept rows. The episodes' seeds
         and the sampled actions depend only on (seed, call): evaluation never touches training's RNG, and a
         resumed run evaluates exactly as the uninterrupted one."""
-        episodes = len(self.envs)
-        base_seed = self.seed + 100_003 * (call + 1)
+        base_seed = self.base_seed(call)
         generator = torch.Generator().manual_seed(base_seed)
-        obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
-        returns = np.zeros(episodes)
-        kept: list[list[np.ndarray]] = [[] for _ in range(episodes)]
-        active = list(range(episodes))
-        while active:
-            logits, rows = policy(torch.as_tensor(normalize_obs(obs[active], stats, self.discretize)))
-            if deterministic:
-                action = logits.argmax(-1).numpy()
-            else:
-                action = torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1).numpy()
-            still_active = []
-            for row, i in enumerate(active):
-                if rows is not None:
+        kept: list[list[np.ndarray]] = [[] for _ in self.envs]
+
+        def act(raw_obs: np.ndarray, running: list[int]) -> list[int]:
+            logits, rows = policy(torch.as_tensor(normalize_obs(raw_obs, stats, self.discretize)))
+            if rows is not None:
+                for row, i in enumerate(running):
                     kept[i].append(rows[row].numpy())
-                o, r, terminated, truncated, _ = self.envs[i].step(int(action[row]))
-                returns[i] += r
-                obs[i] = o
-                if not (terminated or truncated):
-                    still_active.append(i)
-            active = still_active
-        return returns, kept
+            if deterministic:
+                return logits.argmax(-1).tolist()
+            return torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1).tolist()
 
-    def close(self) -> None:
-        for env in self.envs:
-            env.close()
-
+        return self.run_episodes(act, base_seed), kept
 
 
 def evaluate_saved_model(args: Any, load_checkpoint: Callable[[str], dict],

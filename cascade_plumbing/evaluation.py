@@ -82,26 +82,37 @@ class EvaluationRunner:
 
 class EvaluationEnvs:
     """`episodes` envs of `env_id` for evaluation episodes, run side by side (with `render`, the first one's frames
-    are kept in `frames`, for a video); a script's `Evaluator` subclasses it and says how its policy acts. `seed`:
-    the evaluation's seed, from which the script derives each call's episode seeds and action noise."""
+    are kept in `frames`, for a video; `wrap`, e.g. an action wrapper, wraps each env); a script's `Evaluator`
+    subclasses it and says how its policy acts. `seed`: the evaluation's seed, from which each call's episode
+    seeds (`base_seed`) and the script's action noise derive."""
 
-    def __init__(self, env_id: str, episodes: int, seed: int, render: bool = False):
+    def __init__(self, env_id: str, episodes: int, seed: int, render: bool = False,
+                 wrap: Callable[[gym.Env], gym.Env] | None = None):
         self.envs = [make_render_env(env_id) if render else gym.make(env_id) for _ in range(episodes)]
+        if wrap is not None:
+            self.envs = [wrap(env) for env in self.envs]
         self.seed = seed
         self.frames: list[np.ndarray] | None = [] if render else None
+
+    def base_seed(self, call: int) -> int:
+        """The seed of episode 0 of the run's evaluation number `call` (episode i: this + i)."""
+        return self.seed + 100_003 * (call + 1)
 
     def run_episodes(self, act: Callable[[np.ndarray, list[int]], np.ndarray], base_seed: int) -> np.ndarray:
         """One episode on every env (env i reset with seed `base_seed + i`), until all have ended; `act(obs,
         running)` maps the raw observations [m, obs_dim] of the m envs still running (their indices: `running`) to
-        their actions, which are clipped to the action space. Returns each episode's undiscounted return."""
+        their actions, which are clipped to a Box action space. Returns each episode's undiscounted return."""
         obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
         if self.frames is not None:
             self.frames.append(self.envs[0].render())
-        low, high = self.envs[0].action_space.low, self.envs[0].action_space.high
+        space = self.envs[0].action_space
+        box = isinstance(space, gym.spaces.Box)
         returns = np.zeros(len(self.envs))
         active = list(range(len(self.envs)))
         while active:
-            action = np.clip(act(obs[active], active), low, high)
+            action = act(obs[active], active)
+            if box:
+                action = np.clip(action, space.low, space.high)
             still_active = []
             for row, i in enumerate(active):
                 o, r, terminated, truncated, _ = self.envs[i].step(action[row])

@@ -22,6 +22,7 @@ import torch.nn as nn
 from .checkpoints import non_finite_advice
 from .envs import check_env_id
 from .errors import fail
+from .evaluation import EvaluationEnvs
 from .record import RunRecord
 from .replay import ReplayBuffer, available_memory, buffer_capacity, store_transition
 from .tracking import log_new_videos
@@ -69,45 +70,32 @@ def check_replay_settings(args: Any, bounds_needed_because: str) -> None:
 Policy = Callable[[torch.Tensor, torch.Generator], tuple[torch.Tensor, torch.Tensor]]
 
 
-class Evaluator:
-    """Runs `episodes` episodes side by side on its own envs; never touches the training envs or RNG."""
+class Evaluator(EvaluationEnvs):
+    """Runs `episodes` episodes side by side on its own envs (`EvaluationEnvs`); never touches the training envs
+    or RNG. `obs_clip`: the clipping of the observations the policy sees, as in training (0: none)."""
 
     def __init__(self, env_id: str, episodes: int, seed: int, obs_clip: float):
-        self.envs = [gym.make(env_id) for _ in range(episodes)]
-        self.seed, self.obs_clip = seed, obs_clip
+        super().__init__(env_id, episodes, seed)
+        self.obs_clip = obs_clip
 
     @torch.inference_mode()
     def __call__(self, policy: Policy, call: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Runs `policy` (obs, generator -> action in bounds, fallbacks [m, B]); returns each episode's
         undiscounted return and the std of each fallback within each episode [episodes, m]. The episodes'
         seeds and the action noise depend only on (seed, call)."""
-        episodes = len(self.envs)
-        base_seed = self.seed + 100_003 * (call + 1)
+        base_seed = self.base_seed(call)
         generator = torch.Generator().manual_seed(base_seed)
-        obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
-        low, high = self.envs[0].action_space.low, self.envs[0].action_space.high
-        returns = np.zeros(episodes)
-        fallbacks: list[list[np.ndarray]] = [[] for _ in range(episodes)]
-        active = list(range(episodes))
-        while active:
-            seen = np.clip(obs[active], -self.obs_clip, self.obs_clip) if self.obs_clip else obs[active]  # as in training
-            action, fallback = policy(torch.as_tensor(seen, dtype=torch.float32), generator)
-            action = np.clip(action.numpy(), low, high)  # float32 rounding of scale*tanh+bias
-            still_active = []
-            for row, i in enumerate(active):
-                fallbacks[i].append(fallback[:, row].numpy())
-                o, r, terminated, truncated, _ = self.envs[i].step(action[row])
-                returns[i] += r
-                obs[i] = o
-                if not (terminated or truncated):
-                    still_active.append(i)
-            active = still_active
-        fallback_std = np.stack([np.stack(f).std(0) for f in fallbacks])
-        return returns, fallback_std
+        fallbacks: list[list[np.ndarray]] = [[] for _ in self.envs]
 
-    def close(self) -> None:
-        for env in self.envs:
-            env.close()
+        def act(raw_obs: np.ndarray, running: list[int]) -> np.ndarray:
+            seen = np.clip(raw_obs, -self.obs_clip, self.obs_clip) if self.obs_clip else raw_obs  # as in training
+            action, fallback = policy(torch.as_tensor(seen, dtype=torch.float32), generator)
+            for row, i in enumerate(running):
+                fallbacks[i].append(fallback[:, row].numpy())
+            return action.numpy()  # clipped to the bounds there: float32 rounding of scale*tanh+bias
+
+        returns = self.run_episodes(act, base_seed)
+        return returns, np.stack([np.stack(f).std(0) for f in fallbacks])
 
 
 def evaluate_saved_policy(args: Any, load_checkpoint: Callable[[str], dict],

@@ -25,10 +25,13 @@ from .tracking import VIDEO_ROOT, Progress, finish_wandb, finished_videos, log_n
 
 class RunRecord:
     """A run's folder `<track_dir>/<run_name>` and everything written there, for a new run or a resumed one
-    (`checkpoint`, whose folder it continues). `envs` are the training envs (their RunState wrappers)."""
+    (`checkpoint`, whose folder it continues). `envs` are the training envs (their RunState wrappers).
+    `at_iteration_end`: whether `checkpoint` was written at the end of an iteration; `iteration_files`: False for
+    a run that keeps no iteration_<i>.pt (nothing to repair on resume); `progress_line`: False for a run that
+    prints no progress line (its messages still go through `progress.message`)."""
 
     def __init__(self, args: Any, checkpoint: dict | None, envs: gym.vector.VectorEnv, total_steps: int,
-                 at_iteration_end: bool = True):
+                 at_iteration_end: bool = True, iteration_files: bool = True, progress_line: bool = True):
         from torch.utils.tensorboard import SummaryWriter
 
         self.args, self.envs = args, envs
@@ -38,7 +41,9 @@ class RunRecord:
             self.run_dir = os.path.join(args.track_dir, run_name(args))
         else:
             self.run_dir = os.path.dirname(checkpoint["path"])
-            repair_iteration_files(self.run_dir, checkpoint, at_iteration_end)
+            # without iteration files: as a run with none finished (only an interrupted write is removed)
+            repair_iteration_files(self.run_dir, checkpoint if iteration_files else {**checkpoint, "iteration": 0},
+                                   at_iteration_end)
         name = os.path.basename(self.run_dir)
         # kept through an untracked resume, so that a later --track continues the same W&B run
         self.wandb_run_id = None if checkpoint is None else checkpoint.get("wandb_run_id")
@@ -58,6 +63,7 @@ class RunRecord:
         self.videos_sent = finished_videos(self.video_folder)  # a resumed run's earlier ones went to W&B already
         self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT_NAME)
         self.progress = Progress(total_steps, args.quiet)
+        self.progress_line = progress_line
         self.start_time = time.time()
         self.last_checkpoint_step = 0
 
@@ -86,12 +92,13 @@ class RunRecord:
                 self.writer.add_scalar("charts/episodic_length", length, global_step)
 
     def tick(self, global_step: int, size: int) -> None:
-        """After an update: SPS, videos to W&B, the progress line."""
+        """After an update: SPS, videos to W&B, the progress line (`progress_line`)."""
         sps = self.sps(global_step)
         self.writer.add_scalar("charts/SPS", int(sps), global_step)
         if self.args.track:
             log_new_videos(self.video_folder, self.videos_sent, global_step)
-        self.progress.update(global_step, sps, size)
+        if self.progress_line:
+            self.progress.update(global_step, sps, size)
 
     def fast_path_off(self, message: str, step: int) -> None:
         """A fast path failed its check: one line on stderr (also with --quiet), a TensorBoard text."""

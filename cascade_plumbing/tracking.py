@@ -1,5 +1,5 @@
-"""Weights & Biases (--track) the CleanRL way, mirroring the TensorBoard logs (`open_run_log` opens both for a run
-folder); and the progress line.
+"""Weights & Biases (--track) the CleanRL way, mirroring the TensorBoard logs (record.RunRecord opens both for a
+run folder); and the progress line.
 wandb is imported only with --track."""
 
 from __future__ import annotations
@@ -51,45 +51,6 @@ def start_wandb(args: Any, run_name: str, run_dir: str, run_id: str | None) -> s
         fail(f"--track: cannot start the W&B run ({type(exc).__name__}: {first_line}); check `wandb login` and "
              f"the network, {NO_WANDB}")
     return run.id
-
-
-def open_run_log(args: Any, checkpoint: dict | None, run_dir: str, envs: Any) -> tuple[Any, str | None, str | None,
-                                                                                    set[str]]:
-    """The logs of the run folder `run_dir`, a new run's or one continued from `checkpoint`: with --track the W&B
-    run (a resumed run continues its own), then the TensorBoard writer W&B mirrors (a new run's hyperparameters
-    table; a resumed one hides what the killed run logged after its checkpoint), and with --capture-video the
-    folder the first of `envs` records its videos into. Returns (writer, W&B run id, video folder, the videos
-    already sent to W&B)."""
-    from torch.utils.tensorboard import SummaryWriter
-
-    name = os.path.basename(run_dir)
-    # kept through an untracked resume, so that a later --track continues the same W&B run
-    wandb_run_id = None if checkpoint is None else checkpoint.get("wandb_run_id")
-    if args.track:  # before the SummaryWriter: W&B mirrors the TensorBoard logs of writers made after it
-        wandb_run_id = start_wandb(args, name, run_dir, wandb_run_id)
-    if checkpoint is None:
-        writer = SummaryWriter(run_dir)
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
-        )
-    else:  # purge_step hides whatever the killed run logged after its last checkpoint
-        writer = SummaryWriter(run_dir, purge_step=checkpoint["global_step"] + 1)
-    video_folder = os.path.join(VIDEO_ROOT, name) if args.capture_video else None
-    if video_folder is not None:
-        envs.call("record_videos_to", video_folder)
-    return writer, wandb_run_id, video_folder, finished_videos(video_folder)  # a resumed run's earlier ones were sent
-
-
-def log_training_episodes(writer: Any, infos: dict, global_step: int) -> None:
-    """CleanRL's charts/episodic_return and charts/episodic_length: the raw return and length of each training
-    episode that ended at this step (`infos` of a SAME_STEP vector env's step)."""
-    if "final_info" in infos and "episode" in infos["final_info"]:
-        finished = infos["final_info"]["_episode"]
-        for ret, length in zip(infos["final_info"]["episode"]["r"][finished],
-                               infos["final_info"]["episode"]["l"][finished]):
-            writer.add_scalar("charts/episodic_return", ret, global_step)
-            writer.add_scalar("charts/episodic_length", length, global_step)
 
 
 def finished_videos(folder: str | None) -> set[str]:
