@@ -15,7 +15,7 @@ the running runs (each resumes on the next call) and ends the sweep with one lin
     python sweep.py --preset standard --envs Hopper-v4 --seeds 1 2 --scale 0.01
     python sweep.py --preset standard --envs Ant-v4 Walker2d-v4 --seeds 1 2 3 --backend ray --ray-address auto
     python sweep.py --command "cascade_ppo_continuous.py --n 3 --k 500000" --envs Hopper-v4 --seeds 1 2 --dry-run
-    python plots/curves.py --runs sweeps/standard/runs      # then plot (see README)
+    python plots/learning_curves.py --runs sweeps/standard/runs      # then plot (see README)
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ from typing import Literal
 
 import tyro
 
-from cascade_plumbing.tracking import duration
+from cascade_plumbing.errors import fail
+from cascade_plumbing.tracking import check_wandb, duration
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
 
@@ -87,7 +88,8 @@ class Args:
 
 
 # ----------------------------------------------------------------------------------------------
-# The paper's experiments (SPEC §4, §5, §7, §8). Each entry: label, script, flags.
+# The paper's experiments (Schmöcker & Dockhorn, RLJ 2025: Section 4, Fig. 2-8; Appendices D-I, Fig. 9-16). Each
+# entry: label, script, flags.
 # Budget flags (--k, --total-timesteps) are scaled by --scale.
 # ----------------------------------------------------------------------------------------------
 CASCADE = "cascade_ppo_continuous.py"
@@ -133,8 +135,9 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("cascade_discrete", "cascade_ppo_discrete.py", "--n 10 --k 1000000"),
         ("ppo_discrete", "ppo_baseline_discrete.py", "--total-timesteps 10000000"),
     ]),
-    # the SAC/DDPG scripts' defaults are the paper's code (SPEC §8b): alpha fixed at 0.2, 16-16 tanh DDPG nets with a
-    # 64-64 tanh critic and annealed LR, a restart (random warm-up, fresh targets) with each net, +-10 clipping
+    # the SAC/DDPG scripts' defaults are the paper's code where its Appendix H is silent or differs: alpha fixed at
+    # 0.2, 16-16 tanh DDPG nets with a 64-64 tanh critic and annealed LR, a restart (random warm-up, fresh targets)
+    # with each net, +-10 clipping
     "sac-ddpg": ("Fig. 14, 15: Cascade with SAC (2M) and DDPG (6M) vs their baselines, as the paper's code ran them", [
         ("cascade_sac", "cascade_sac.py", "--n 4 --k 500000"),
         ("sac", "cascade_sac.py", "--n 1 --k 2000000 --hidden-size 256"),
@@ -145,10 +148,6 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
 BUDGET_FLAGS = ("--k", "--total-timesteps", "--cycle-steps")
 MIN_BUDGET = 2048  # one PPO rollout: a scaled budget (or checkpoint cadence) never goes below it
 CADENCE_FLAG = "--checkpoint-every"  # scaled too; 0 (checkpoints at iteration ends only) stays 0
-
-
-def fail(message: str) -> None:
-    raise SystemExit(f"error: {message}")
 
 
 @dataclass
@@ -204,20 +203,6 @@ def tracking_flags(args: Args, sweep_dir: str) -> list[str]:
     flags = ["--track", "--wandb-project-name", args.wandb_project_name,
              "--wandb-group", args.wandb_group or os.path.basename(sweep_dir)]
     return flags + (["--wandb-entity", args.wandb_entity] if args.wandb_entity else [])
-
-
-def check_wandb() -> None:
-    """--track: the check every run makes at its start, once here, so that a missing login is one line and not a
-    failed sweep (on a cluster every node needs the login too)."""
-    try:
-        import wandb
-    except ImportError:
-        fail("--track needs wandb: pip install -r requirements.txt")
-    if wandb.setup().settings.mode in ("offline", "dryrun", "disabled"):
-        return
-    if not wandb.login(prompt=False, verify=False):
-        fail("--track: no W&B login found; run `wandb login` (or set WANDB_API_KEY), or set WANDB_MODE=offline "
-             "to log locally and `wandb sync` later")
 
 
 def scale_flags(flags: list[str], scale: float) -> list[str]:
@@ -548,7 +533,7 @@ def sweep() -> None:
     if missing:
         fail(f"script(s) not found in {ROOT}: {', '.join(missing)}")
     if args.track and todo:
-        check_wandb()
+        check_wandb()  # what every run checks at its start, once here: one line, not a failed sweep
     removed = sum(remove_unresumable(os.path.join(track_dir, run.run_id)) for run, *_ in todo)
     print(f"[sweep] {len(runs)} runs in {sweep_dir}: {skipped} already finished, {len(todo)} to run "
           f"({args.backend} backend)" + (f"; removed {removed} run folder(s) without a checkpoint, left by runs "

@@ -28,7 +28,8 @@ from plots import analyze, common, fallback, final_performance, learning_curves,
 
 ENV_ORDER = ("HalfCheetah-v4", "Ant-v4", "Hopper-v4", "Walker2d-v4", "Humanoid-v4")
 LABELS = ("cascade=Cascade", "ppo=PPO")
-# The paper's numbers (SPEC §9; Table 2's runtimes on a 28-core Xeon Gold 5120, Ant)
+# The paper's numbers (Schmöcker & Dockhorn, RLJ 2025: Table 1, Section 4.5; Table 2, Appendix K, its runtimes on a
+# 28-core Xeon Gold 5120, Ant; Table 3, Appendix L; the verdicts of Fig. 2, Section 4.2)
 PAPER_TABLE1 = {"Ant-v4": [0.96, 0.96, 0.96, 0.96, 0.88], "Walker2d-v4": [0.82, 0.85, 0.92, 0.90, 0.81]}
 PAPER_TABLE3 = {"Ant-v4": [0.051, 0.039, 0.041, 0.046, 0.087], "Walker2d-v4": [0.198, 0.174, 0.144, 0.113, 0.095]}
 PAPER_VERDICT = {"HalfCheetah-v4": "Cascade better", "Ant-v4": "Cascade better", "Hopper-v4": "draw",

@@ -1,6 +1,7 @@
-"""The side experiments as the paper's own code ran them (SPEC §8b): SAC's log-std head and alpha, DDPG's nets,
-clipping of raw observations and rewards, discrete normalization, Fig. 5's one critic, Fig. 3's Adam restarts,
-and the sweep presets that run those figures. (What happens when SAC/DDPG add a net: tests/test_sac_ddpg.py.)"""
+"""The side experiments as the paper's own code ran them (where the paper's text, Appendix H, is silent or
+differs): SAC's log-std head and alpha, DDPG's nets, clipping of raw observations and rewards, discrete
+normalization, Fig. 5's one critic, Fig. 3's Adam restarts, and the sweep presets that run those figures.
+(What happens when SAC/DDPG add a net: tests/test_sac_ddpg.py.)"""
 
 import os
 

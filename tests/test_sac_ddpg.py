@@ -309,7 +309,7 @@ def test_defaults_are_cleanrl_and_the_papers_code():
     assert (sac.buffer_size, sac.batch_size, sac.tau, sac.gamma, sac.policy_lr, sac.q_lr) == (
         1_000_000, 256, 0.005, 0.99, 3e-4, 1e-3)
     assert (sac.policy_frequency, sac.target_network_frequency, sac.learning_starts) == (2, 1, 5_000)
-    # the paper's code where its text is silent or differs (SPEC §8b)
+    # the paper's code where its text (Appendix H) is silent or differs
     assert (sac.autotune, sac.alpha, sac.restart_on_new_net, sac.obs_reward_clip) == (False, 0.2, True, 10.0)
     assert (ddpg.n, ddpg.k, ddpg.hidden_size, ddpg.activation, ddpg.critic_hidden_size) == (
         6, 1_000_000, 16, "tanh", 64)  # 6M steps
