@@ -411,7 +411,7 @@ class Evaluator(EvaluationEnvs):
                  stats: tuple[np.ndarray, np.ndarray] | None, call: int = 0, deterministic: bool = False) -> np.ndarray:
         """Runs `policy` (obs -> mean, log-std: the actor); returns each episode's undiscounted raw return. The
         episodes' seeds and the action noise depend only on (seed, call): evaluation never touches training's RNG."""
-        base_seed = self.seed + 100_003 * (call + 1)
+        base_seed = self.base_seed(call)
 
         def act_frozen(raw_obs: np.ndarray, _running: list[int]) -> np.ndarray:
             mean, log_std = policy(torch.as_tensor(normalize_obs(raw_obs, stats)))
