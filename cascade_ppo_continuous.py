@@ -745,13 +745,7 @@ class RunLog(RunRecord):
         """CleanRL's scalars and the fallback metrics (paper Section 4.2, Table 1) after one update."""
         log_ppo_update(self.writer, global_step, optimizer, parts, old_approx_kl, approx_kl, ratios, b_values,
                        b_returns, self.args.clip_coef, fast)
-        # means over the rollout batch, of the lambdas/weights the acting policy used
-        mean_weight = batch_contribution.mean(1)
-        for j, lam in enumerate(batch_fallback.mean(1).tolist()):
-            self.writer.add_scalar(f"cascade/fallback/net_{j + 2}", lam, global_step)
-        for j, w in enumerate(mean_weight.tolist()):
-            self.writer.add_scalar(f"cascade/contribution/net_{j + 1}", w, global_step)
-        self.writer.add_scalar("cascade/fallback_product", mean_weight[0].item(), global_step)
+        self.log_fallbacks(batch_fallback, batch_contribution, global_step)  # over the rollout the policy acted in
         self.writer.add_scalar("cascade/size", size, global_step)
         self.tick(global_step, size)
 

@@ -189,15 +189,6 @@ class OffPolicyRun(RunRecord):
         self.writer.add_scalar("cascade/parameters", n_params, global_step)
         self.progress.message(f"iteration {iteration}/{self.args.n}: {size} base net(s), {n_params} parameters ({nets})")
 
-    def log_fallbacks(self, fallback: torch.Tensor, contribution: torch.Tensor, global_step: int) -> None:
-        """The fallback metrics: means over a batch of states of each net's lambda [n-1, B] and share [n, B]."""
-        mean_weight = contribution.mean(1)
-        for j, lam in enumerate(fallback.mean(1).tolist()):
-            self.writer.add_scalar(f"cascade/fallback/net_{j + 2}", lam, global_step)
-        for j, w in enumerate(mean_weight.tolist()):
-            self.writer.add_scalar(f"cascade/contribution/net_{j + 1}", w, global_step)
-        self.writer.add_scalar("cascade/fallback_product", mean_weight[0].item(), global_step)
-
     def tick(self, global_step: int, size: int) -> None:
         """Every 100 steps: the steps per second, and the progress line."""
         if global_step % 100 == 0:
