@@ -216,3 +216,33 @@ def test_ddpg_update_matches_reference(n, policy_frequency):
             torch.testing.assert_close(out[key], value, rtol=1e-10, atol=1e-12, msg=f"step {step}: {key}")
         for name, module in [("actor", actor), ("target_actor", target_actor), ("qf", qf), ("qf_target", qf_target)]:
             assert_same(module, ref[name])
+
+
+# ----------------------------------------------------------------------------------------------
+# The scripts' `minimize`: the fused Adam kernel called directly, as optimizer.step() would
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("script", [cs, cd], ids=["sac", "ddpg"])
+def test_minimize_is_adam_step_bit_for_bit(script):
+    """minimize(optimizer, loss) moves the parameters and leaves the optimizer's state (what a checkpoint saves)
+    exactly as zero_grad(), backward() and step() do, over steps with a changing learning rate."""
+    torch.manual_seed(0)
+    qf = script.QNetworks(OBS_DIM, ACT_DIM, hidden_size=8)
+    reference = copy.deepcopy(qf)
+    make = (lambda p: script.make_adam(p, 1e-2)) if script is cs else (lambda p: script.make_adam(p, 1e-2, 1e-5))
+    optimizer, ref_optimizer = make(list(qf.parameters())), make(list(reference.parameters()))
+    plain_steps = []
+    optimizer.step = lambda *a, step=optimizer.step: plain_steps.append(1) or step(*a)
+    obs, actions, rewards, _, _ = fixed_batch()
+    for step in range(4):
+        for opt in (optimizer, ref_optimizer):
+            opt.param_groups[0]["lr"] = 1e-2 / (step + 1)
+        script.minimize(optimizer, ((qf(obs, actions) - rewards) ** 2).mean())
+        ref_optimizer.zero_grad()
+        ((reference(obs, actions) - rewards) ** 2).mean().backward()
+        ref_optimizer.step()
+        for p, q in zip(qf.parameters(), reference.parameters()):
+            assert torch.equal(p, q), f"step {step}"
+    for state, ref_state in zip(optimizer.state_dict()["state"].values(), ref_optimizer.state_dict()["state"].values()):
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(state[key], ref_state[key]), key
+    assert len(plain_steps) == 1  # only the first step (it creates the state) goes through step()

@@ -1,0 +1,267 @@
+"""Update cost and training throughput of cascade_sac.py and cascade_ddpg.py on this machine (issue 30).
+
+Each configuration runs `train` of its script in a fresh subprocess (so peak memory is its own) with the
+script's own nets, optimizers and update function. The run is cut short: the nets are stacked without
+waiting for updates (`--no-restart-on-new-net --keep-buffer`, k = --k; the update function is skipped
+until the last net is stacked), evaluation is off. Measured, once the full stack is updated:
+
+- steps/s of the training loop (env step, acting, sampling, update, bookkeeping) over --updates steps;
+- ms per update split into parts, by calling the script's update function on the live objects with its
+  delays arranged so that only some parts run: critic (critic only), actor (critic + the actor's
+  `policy_frequency` updates, less the critic; per env step), alpha (the same with --autotune, less
+  without; SAC only, not in the total: alpha is fixed by default), targets (SAC: with the target update,
+  less without; DDPG: the script's soft_update of both targets, per env step), sampling (buffer.sample);
+- peak RSS of the process.
+
+    python benchmarks/offpolicy.py                        # Hopper-v4, all four configurations
+    python benchmarks/offpolicy.py --env-id HalfCheetah-v4 --configs sac_baseline ddpg_baseline
+    python benchmarks/offpolicy.py --ref HEAD~1           # this tree and an older commit, interleaved
+
+`--ref REV` also runs every configuration from an older commit (exported to a temp folder), interleaved with
+the current ones, and prints the ratios (median and range over the repeats), so changes are judged side by
+side on a loaded machine. The update functions' signatures must be the same in both trees.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+
+import tyro
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@dataclass
+class Args:
+    env_id: str = "Hopper-v4"
+    """environment to train on (Hopper-v4; HalfCheetah-v4 as an option)"""
+    configs: tuple[str, ...] = ("cascade_sac", "sac_baseline", "cascade_ddpg", "ddpg_baseline")
+    """configurations to measure"""
+    k: int = 700
+    """steps per iteration of the shortened run (the last net's iteration holds warm-up and measured updates)"""
+    warmup: int = 50
+    """updates of the full stack before measuring"""
+    updates: int = 300
+    """measured training steps (each with one update)"""
+    calls: int = 40
+    """update calls per part and round for the split"""
+    rounds: int = 3
+    """rounds of the split (the parts interleaved; each part's median over rounds)"""
+    repeats: int = 2
+    """runs per configuration (and per tree with --ref); the table shows medians"""
+    threads: int = 1
+    """torch threads (--torch-threads of the scripts)"""
+    ref: str | None = None
+    """also measure every configuration at this git revision, side by side"""
+    json: bool = False
+    """print the results as JSON instead of a table"""
+    worker: str | None = None
+    """internal: run one configuration and print its JSON result"""
+    root: str = ROOT
+    """internal: the folder the worker imports the scripts from"""
+
+
+CONFIGS = {  # script, its arguments
+    "cascade_sac": ("cascade_sac", dict(n=4, hidden_size=128)),
+    "sac_baseline": ("cascade_sac", dict(n=1, hidden_size=256)),
+    "cascade_ddpg": ("cascade_ddpg", dict(n=6, hidden_size=16)),
+    "ddpg_baseline": ("cascade_ddpg", dict(n=1, hidden_size=64)),
+}
+PARTS = ("sampling", "critic", "actor", "targets", "alpha")
+
+
+class Stop(Exception):
+    pass
+
+
+def timed(fn, calls: int) -> float:
+    """ms per call of fn()."""
+    start = time.perf_counter()
+    for _ in range(calls):
+        fn()
+    return (time.perf_counter() - start) / calls * 1e3
+
+
+def split_sac(script, a: Args, update_args: tuple, buffer) -> dict:
+    args, _, _, *objects = update_args
+    pf = args.policy_frequency
+    never = 10**9  # a delay that never comes round: that part is skipped
+    plain = dataclasses.replace(args, target_network_frequency=never, autotune=False)
+    with_targets = dataclasses.replace(plain, target_network_frequency=1)
+    tuned = dataclasses.replace(plain, autotune=True)
+    device = update_args[2][0].device
+
+    def update(run_args, step):
+        return lambda: script.sac_update(run_args, step, buffer.sample(args.batch_size, device), *objects)
+
+    variants = {"sampling": lambda: buffer.sample(args.batch_size, device), "critic": update(plain, 1),
+                "critic+targets": update(with_targets, 1), "critic+actor": update(plain, pf),
+                "critic+actor+alpha": update(tuned, pf)}
+    ms = measure_variants(variants, a)
+    critic = ms["critic"] - ms["sampling"]
+    return {"sampling": ms["sampling"], "critic": critic, "actor": (ms["critic+actor"] - ms["critic"]) / pf,
+            "targets": ms["critic+targets"] - ms["critic"],
+            "alpha": (ms["critic+actor+alpha"] - ms["critic+actor"]) / pf}
+
+
+def split_ddpg(script, a: Args, update_args: tuple, buffer) -> dict:
+    args, _, batch, actor, target_actor, qf, qf_target, *_ = update_args
+    pf = args.policy_frequency
+    device = batch[0].device
+
+    def update(step):
+        return lambda: script.ddpg_update(args, step, buffer.sample(args.batch_size, device), *update_args[3:])
+
+    def targets():
+        script.soft_update(target_actor, actor, args.tau)
+        script.soft_update(qf_target, qf, args.tau)
+
+    variants = {"sampling": lambda: buffer.sample(args.batch_size, device), "critic": update(1),
+                "critic+actor+targets": update(pf), "targets": targets}
+    ms = measure_variants(variants, a)
+    return {"sampling": ms["sampling"], "critic": ms["critic"] - ms["sampling"],
+            "actor": (ms["critic+actor+targets"] - ms["critic"] - ms["targets"]) / pf,
+            "targets": ms["targets"] / pf, "alpha": float("nan")}
+
+
+def measure_variants(variants: dict, a: Args) -> dict:
+    rounds: dict[str, list[float]] = {name: [] for name in variants}
+    for fn in variants.values():  # warm-up (first-call costs, optimizer state)
+        timed(fn, 3)
+    for _ in range(a.rounds):
+        for name, fn in variants.items():
+            rounds[name].append(timed(fn, a.calls))
+    return {name: statistics.median(values) for name, values in rounds.items()}
+
+
+def run_worker(config: str, a: Args) -> dict:
+    sys.path.insert(0, a.root)
+    import importlib
+
+    import torch
+
+    script_name, extra = CONFIGS[config]
+    script = importlib.import_module(script_name)
+    assert os.path.dirname(os.path.abspath(script.__file__)) == os.path.abspath(a.root), script.__file__
+    n = extra["n"]
+    update_name = "sac_update" if script_name == "cascade_sac" else "ddpg_update"
+    update = getattr(script, update_name)
+    args = script.Args(env_id=a.env_id, k=a.k, learning_starts=a.k // 4, keep_buffer=True,
+                       restart_on_new_net=False, eval_every=0, eval_members=False, quiet=True,
+                       torch_threads=a.threads, track_dir=tempfile.mkdtemp(prefix="offpolicy_"), **extra)
+    assert a.warmup + a.updates + 1 < a.k, "--k must exceed --warmup + --updates"
+    state: dict = {}
+    marks: list[float] = []
+
+    def on_iteration_start(s: dict) -> None:
+        state["buffer"] = s["buffer"]
+
+    def measured_update(*update_args):
+        if update_args[3].size < n:  # the shortened run: no updates before the full stack
+            return {"alpha": update_args[8]} if script_name == "cascade_sac" else {}
+        out = update(*update_args)
+        marks.append(time.perf_counter())
+        if len(marks) == a.warmup + a.updates + 1:
+            splitter = split_sac if script_name == "cascade_sac" else split_ddpg
+            state["parts"] = splitter(script, a, update_args, state["buffer"])
+            raise Stop
+        return out
+
+    setattr(script, update_name, measured_update)
+    try:
+        script.train(args, on_iteration_start=on_iteration_start)
+    except Stop:
+        pass
+    sps = a.updates / (marks[-1] - marks[a.warmup])
+    parts = state["parts"]
+    total = sum(v for k, v in parts.items() if k != "alpha")
+    return {"config": config, "sps": sps, "parts_ms": parts, "update_ms": total, "torch": torch.__version__,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def export(rev: str) -> str:
+    root = tempfile.mkdtemp(prefix="offpolicy_ref_")
+    archive = subprocess.run(["git", "-C", ROOT, "archive", rev], capture_output=True)
+    if archive.returncode != 0:
+        sys.exit(f"error: cannot export --ref {rev}: {archive.stderr.decode().strip()}")
+    subprocess.run(["tar", "-x", "-C", root], input=archive.stdout, check=True)
+    return root
+
+
+def main() -> None:
+    a = tyro.cli(Args)
+    if a.worker:
+        print(json.dumps(run_worker(a.worker, a)))
+        return
+    unknown = [c for c in a.configs if c not in CONFIGS]
+    if unknown:
+        sys.exit(f"error: unknown --configs {unknown} (known: {', '.join(CONFIGS)})")
+    runs = [(c, "this", ROOT) for c in a.configs]
+    if a.ref:
+        ref_root = export(a.ref)
+        runs = [r for c in a.configs for r in ((c, "this", ROOT), (c, "ref", ref_root))]
+    results: dict[tuple[str, str], list[dict]] = {(c, t): [] for c, t, _ in runs}
+    for repeat in range(a.repeats):
+        for config, tree, root in runs:  # interleaved, so slow drifts of the machine hit every config alike
+            cmd = [sys.executable, os.path.abspath(__file__), "--worker", config, "--root", root]
+            for name in ("env_id", "k", "warmup", "updates", "calls", "rounds", "threads"):
+                cmd += [f"--{name.replace('_', '-')}", str(getattr(a, name))]
+            # the scripts from `root`, the package too (PYTHONPATH precedes the editable install)
+            env = {**os.environ, "PYTHONPATH": root}
+            out = subprocess.run(cmd, capture_output=True, text=True, cwd=root, env=env)
+            if out.returncode != 0:
+                sys.exit(f"error: {config} ({tree}) failed:\n{out.stderr[-3000:]}")
+            r = json.loads(out.stdout.strip().splitlines()[-1])
+            results[(config, tree)].append(r)
+            if not a.json:
+                print(f"  repeat {repeat + 1}/{a.repeats} {config} ({tree}): {r['sps']:.0f} steps/s, "
+                      f"{r['update_ms']:.2f} ms/update", file=sys.stderr)
+    summary = {}
+    for (config, tree), rs in results.items():
+        summary[f"{config}@{tree}"] = {
+            "sps": statistics.median(r["sps"] for r in rs), "all_sps": [r["sps"] for r in rs],
+            "update_ms": statistics.median(r["update_ms"] for r in rs),
+            "all_update_ms": [r["update_ms"] for r in rs],
+            "parts_ms": {p: statistics.median(r["parts_ms"][p] for r in rs) for p in PARTS},
+            "peak_rss_mb": statistics.median(r["peak_rss_mb"] for r in rs)}
+    ratios = {}
+    if a.ref:
+        for config in a.configs:
+            this, ref = results[(config, "this")], results[(config, "ref")]
+            sps = [t["sps"] / r["sps"] for t, r in zip(this, ref)]  # pairs run next to each other
+            upd = [r["update_ms"] / t["update_ms"] for t, r in zip(this, ref)]
+            ratios[config] = {"sps": statistics.median(sps), "sps_range": [min(sps), max(sps)],
+                              "update_speedup": statistics.median(upd), "update_speedup_range": [min(upd), max(upd)]}
+    meta = dataclasses.asdict(a) | {"cpus": os.cpu_count(), "python": sys.version.split()[0],
+                                    "load_avg": os.getloadavg()}
+    if a.json:
+        print(json.dumps({"meta": meta, "results": summary, "ratios": ratios}, indent=2))
+        return
+    print(f"\n{a.env_id}: median of {a.repeats} runs; {a.updates} training steps with updates after {a.warmup} "
+          f"warm-up updates; split from {a.rounds} x {a.calls} calls per part; {a.threads} torch thread(s); "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
+    print("| configuration | tree | steps/s | ms/update | sampling | critic | actor | targets | (alpha) | peak RSS MB |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for key, r in summary.items():
+        config, tree = key.split("@")
+        p = r["parts_ms"]
+        label = a.ref if tree == "ref" else "this tree"
+        print(f"| {config} | {label} | {r['sps']:.0f} | {r['update_ms']:.2f} | "
+              + " | ".join(f"{p[name]:.2f}" for name in PARTS) + f" | {r['peak_rss_mb']:.0f} |")
+    for config, q in ratios.items():
+        print(f"{config}: this tree / {a.ref}: steps/s x{q['sps']:.2f} [{q['sps_range'][0]:.2f}, "
+              f"{q['sps_range'][1]:.2f}], update speed x{q['update_speedup']:.2f} "
+              f"[{q['update_speedup_range'][0]:.2f}, {q['update_speedup_range'][1]:.2f}]")
+
+
+if __name__ == "__main__":
+    main()
