@@ -527,7 +527,7 @@ def train(args: Args, checkpoint: dict | None = None,
             # --- rollout: the weights do not change during it; values, log-probs and fallback
             # statistics are computed for the whole batch afterwards ---
             policy = fast.acting_function(act, actor, np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]]),
-                                          global_step)  # `act`, or its checked numpy twin
+                                          global_step, args.num_steps)  # `act`, or its checked numpy twin
             for step in range(args.num_steps):
                 global_step += args.num_envs
                 obs[step] = next_obs
@@ -642,16 +642,22 @@ def policy_of(actor: CascadeActor, kind: int) -> Callable:
     return full_policy(actor) if kind == 0 else member_policy(actor, kind - 1)
 
 
-def evaluate_request(args_dict: dict, obs_dim: int, act_dim: int, evaluator: Evaluator, call: int,
-                     request: tuple) -> tuple:
-    """One evaluation (in the worker process, or inline): rebuild the frozen policy and run the episodes."""
-    kind, size, state, stats = request
-    args = Args(**args_dict)
-    with torch.random.fork_rng(devices=[]):  # inline, the nets' init draws must not shift training's RNG stream
+def frozen_actor(obs_dim: int, act_dim: int, args: Args, size: int, state: dict) -> CascadeActor:
+    """A `size`-net CascadeActor holding `state`; building it draws no number from the caller's torch RNG
+    (training's, when evaluations run inline)."""
+    with torch.random.fork_rng(devices=[]):
         actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init)
         for _ in range(size):
             actor.add_base_net()
     actor.load_state_dict(state)
+    return actor
+
+
+def evaluate_request(args_dict: dict, obs_dim: int, act_dim: int, evaluator: Evaluator, call: int,
+                     request: tuple) -> tuple:
+    """One evaluation (in the worker process, or inline): rebuild the frozen policy and run the episodes."""
+    kind, size, state, stats = request
+    actor = frozen_actor(obs_dim, act_dim, Args(**args_dict), size, state)
     return (kind, *evaluator(policy_of(actor, kind), stats, call))
 
 
@@ -828,14 +834,8 @@ def finished(args: Args, checkpoint: dict) -> bool:
 
 
 def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") -> CascadeActor:
-    saved = Args(**checkpoint["args"])
-    rng = torch.get_rng_state()  # building the nets draws random inits; keep the caller's RNG untouched
-    actor = CascadeActor(checkpoint["obs_dim"], checkpoint["act_dim"], saved.hidden_size, saved.num_layers,
-                         saved.fallback_init)
-    for _ in range(checkpoint["actor_size"]):
-        actor.add_base_net()
-    torch.set_rng_state(rng)
-    actor.load_state_dict(checkpoint["actor"])
+    actor = frozen_actor(checkpoint["obs_dim"], checkpoint["act_dim"], Args(**checkpoint["args"]),
+                         checkpoint["actor_size"], checkpoint["actor"])
     actor.freeze_below(checkpoint["num_frozen"])
     return actor.to(device)
 

@@ -337,7 +337,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         # --- rollout: the weights do not change during it; values and log-probs are computed for the
         # whole batch afterwards ---
         policy = fast.acting_function(act, actor, np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]]),
-                                      global_step)  # `act`, or its checked numpy twin
+                                      global_step, args.num_steps)  # `act`, or its checked numpy twin
         for step in range(args.num_steps):
             global_step += args.num_envs
             obs[step] = next_obs

@@ -336,23 +336,68 @@ def mlp_ppo_gradients(actor: nn.Module, critic: nn.Module, minibatch: tuple, arg
     return losses.pop("loss"), losses
 
 
-def numpy_gaussian_sampler(policy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+def numpy_gaussian_sampler(policy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], calls: int = 0
                            ) -> Callable[[np.ndarray], np.ndarray]:
     """obs -> a sample of Normal(mean, exp(log_std)) as torch's `Normal.sample()` draws it: one standard normal
     per action entry from torch's RNG (the same draws, in the same order: `normal_` on a tensor of the actions'
-    shape), then mean + std * noise. The noise tensor is reused (its numpy view costs nothing per step)."""
-    noise, noise_np = torch.empty(0), np.empty(0)
+    shape), then mean + std * noise.
+
+    `calls`, when given, is the number of calls to come (a rollout's steps). If each call draws fewer than
+    SERIAL_NORMAL numbers, the noise of all of them is drawn at the first call with one `normal_` (a torch call
+    per env step costs ~10-20 us in a rollout loop, a cold path between two MuJoCo steps): torch fills such
+    tensors one number after the other, so the draws and the RNG state afterwards are those of one call per
+    step; `bulk_draws_match` confirms it on the running torch, else every call draws its own."""
+    noise_np, index = np.empty((0, 0)), 0
 
     def sample(obs: np.ndarray) -> np.ndarray:
-        nonlocal noise, noise_np
+        nonlocal noise_np, index
         mean, log_std = policy(obs)
-        if noise_np.shape != mean.shape or noise_np.dtype != mean.dtype:
-            noise = torch.from_numpy(np.empty(mean.shape, mean.dtype))
-            noise_np = noise.numpy()
-        noise.normal_()
-        return mean + np.exp(log_std) * noise_np
+        if index == len(noise_np) or noise_np.shape[1:] != mean.shape or noise_np.dtype != mean.dtype:
+            rows = calls if index == 0 and calls > 1 and bulk_draws_match(mean.shape, mean.dtype) else 1
+            noise_np, index = standard_normals(rows, mean.shape, mean.dtype), 0
+        noise = noise_np[index]
+        index += 1
+        return mean + np.exp(log_std) * noise
 
     return sample
+
+
+SERIAL_NORMAL = 16  # torch's CPU normal_ fills a tensor of fewer numbers (or a strided one) one number at a time
+
+
+def standard_normals(rows: int, shape: tuple, dtype: np.dtype) -> np.ndarray:
+    """[rows, *shape] standard normals from torch's RNG. For rows > 1, one `normal_` on a strided view (the last
+    axis padded by one), which torch fills one number at a time in row order (its serial kernel)."""
+    if rows == 1:
+        storage = np.empty((1, *shape), dtype)
+        torch.from_numpy(storage).normal_()
+        return storage
+    storage = np.empty((rows, *shape[:-1], shape[-1] + 1), dtype)
+    noise = torch.from_numpy(storage)[..., : shape[-1]]
+    noise.normal_()
+    return storage[..., : shape[-1]]
+
+
+_bulk_checked: dict[tuple, bool] = {}
+
+
+def bulk_draws_match(shape: tuple, dtype: np.dtype) -> bool:
+    """Whether `standard_normals(r, shape)` draws exactly what r calls of `normal_` on a `shape` tensor draw, and
+    leaves torch's RNG in the same state (checked once per shape and dtype, on a forked RNG)."""
+    key = (tuple(shape), np.dtype(dtype).str)
+    if key not in _bulk_checked:
+        if int(np.prod(shape)) >= SERIAL_NORMAL or len(shape) == 0:
+            _bulk_checked[key] = False
+        else:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(CHECK_SEED)
+                one_by_one = np.stack([standard_normals(1, shape, dtype)[0] for _ in range(5)])
+                state = torch.get_rng_state()
+                torch.manual_seed(CHECK_SEED)
+                bulk = standard_normals(5, shape, dtype)
+                _bulk_checked[key] = bool(np.array_equal(one_by_one, bulk)
+                                          and torch.equal(state, torch.get_rng_state()))
+    return _bulk_checked[key]
 
 
 CHECK_SEED = 12345  # the acting check draws its noise from a forked RNG seeded with this: training's stream is untouched
@@ -384,9 +429,9 @@ class FastPaths:
         return self._twin[2]
 
     def acting_function(self, act: Callable[[nn.Module, np.ndarray], np.ndarray], actor: nn.Module,
-                        check_obs: np.ndarray, step: int) -> Callable[[np.ndarray], np.ndarray]:
+                        check_obs: np.ndarray, step: int, calls: int = 0) -> Callable[[np.ndarray], np.ndarray]:
         """The rollout's obs -> actions: the numpy path if it draws what the script's `act(actor, obs)` draws
-        from the same RNG state on `check_obs`, else `act` itself."""
+        from the same RNG state on `check_obs`, else `act` itself. `calls`: the rollout's steps, if known."""
         definition = functools.partial(act, actor)
         if not self.acting:
             return definition
@@ -412,7 +457,7 @@ class FastPaths:
                             f"than act() (max relative error {error:.1e})", step)
             return definition
         self.worst["acting"] = max(self.worst["acting"], error)
-        fast_act = numpy_gaussian_sampler(self.numpy_policy(actor))
+        fast_act = numpy_gaussian_sampler(self.numpy_policy(actor), calls)
 
         def guarded(obs: np.ndarray) -> np.ndarray:
             nonlocal fast_act

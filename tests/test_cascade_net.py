@@ -248,3 +248,25 @@ def test_empty_stack_acts_with_zero_mean_and_unit_std():
     assert torch.equal(mean, torch.zeros(4, 3)) and torch.equal(log_std, torch.zeros(4, 3))
     np_mean, np_log_std = fast.numpy_cascade_policy(actor)(obs.numpy())
     assert (np_mean == 0).all() and (np_log_std == 0).all() and np_mean.shape == (4, 3)
+
+
+@pytest.mark.parametrize("num_envs,act_dim", [(1, 6), (2, 3), (1, 17), (4, 6)])
+def test_rollout_sampler_draws_what_act_draws_step_by_step(num_envs, act_dim):
+    """The fast rollout sampler (which may draw a whole rollout's noise at its first call) gives, step after step,
+    the actions `act` samples one step at a time from the same seed, and leaves torch's RNG where `act` does;
+    below 16 numbers per step (HalfCheetah: 6) in one draw, from 16 on (Humanoid: 17) one draw per step."""
+    steps, obs_dim = 7, 5
+    actor = cpc.CascadeActor(obs_dim, act_dim, 8, 2, 0.5)
+    for _ in range(2):
+        actor.add_base_net()
+    observations = torch.randn(steps, num_envs, obs_dim).numpy()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(7)
+        expected = [cpc.act(actor, obs) for obs in observations]
+        state = torch.get_rng_state()
+        torch.manual_seed(7)
+        sampler = fast.numpy_gaussian_sampler(fast.numpy_cascade_policy(actor), calls=steps)
+        got = [sampler(obs) for obs in observations]
+        assert torch.equal(torch.get_rng_state(), state)
+    np.testing.assert_allclose(np.stack(got), np.stack(expected), rtol=1e-5, atol=1e-6)
+    assert fast.bulk_draws_match((num_envs, act_dim), np.float32) == (num_envs * act_dim < 16)
