@@ -79,3 +79,32 @@ def resume_from(module, checkpoint_file, folder):
     shutil.copy(checkpoint_file, os.path.join(folder, "checkpoint.pt"))
     checkpoint = module.load_checkpoint(str(folder))
     return module.train(module.Args(**checkpoint["args"]), checkpoint)
+
+
+def run_in_process(script, *args):
+    """`python <script> <args>` run inside the test process (no interpreter start-up: ~4 s saved per call);
+    returns (exit code, what SystemExit carried). The script's signal handlers are restored afterwards."""
+    import importlib
+    from unittest import mock
+
+    module = importlib.import_module(os.path.splitext(os.path.basename(script))[0])
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with mock.patch.object(sys, "argv", [script, *map(str, args)]):
+            module.main()
+    except SystemExit as stop:
+        if stop.code is None or isinstance(stop.code, int):
+            return stop.code or 0, ""
+        return 1, str(stop.code)
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    return 0, ""
+
+
+def error_line_in_process(script, *args):
+    """The one-line `error: ...` a script stops with on bad input, run in-process (see `run_in_process`)."""
+    code, message = run_in_process(script, *args)
+    assert code != 0, f"{script} {args} did not fail"
+    assert message.startswith("error:") and "\n" not in message, message
+    return message

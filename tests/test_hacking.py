@@ -2,6 +2,7 @@
 fast paths or through autograd after a one-line warning, never silently wrong; the unmodified scripts
 keep their fast paths; --autograd gives the fast path's results up to float rounding."""
 
+import importlib.util
 import os
 import shutil
 import subprocess
@@ -16,9 +17,6 @@ import ppo_baseline as pb
 from helpers import ROOT
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2, eval_every=0, checkpoint_every=0, quiet=True)
-TINY_FLAGS = ["--env-id", "Hopper-v4", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2",
-              "--eval-every", "0", "--checkpoint-every", "0", "--quiet"]
-BUDGET = {"cascade_ppo_continuous.py": ["--n", "2", "--k", "1024"], "ppo_baseline.py": ["--total-timesteps", "1024"]}
 
 
 def final_parameters(run_dir):
@@ -102,43 +100,57 @@ CASES = [  # script, edit, the parts the warnings must name (in order)
 ]
 
 
-def run_copy(script_path, *flags, track_dir):
-    proc = subprocess.run([sys.executable, script_path, *flags, "--track-dir", str(track_dir)],
-                          capture_output=True, text=True, timeout=300, cwd=os.path.dirname(script_path))
-    assert proc.returncode == 0, proc.stderr[-3000:]
+TINY_ARGS = dict(env_id="Hopper-v4", num_steps=256, num_minibatches=4, update_epochs=2, eval_every=0,
+                 checkpoint_every=0, quiet=True)
+BUDGET_ARGS = {"cascade_ppo_continuous.py": dict(n=2, k=1024), "ppo_baseline.py": dict(total_timesteps=1024)}
+
+
+def import_copy(path):
+    """The edited copy as a module of its own (in-process: a subprocess per run would cost ~4 s of start-up)."""
+    name = f"edited_{os.path.basename(os.path.dirname(path))}_{os.path.splitext(os.path.basename(path))[0]}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the file runs
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    return module
+
+
+def train_copy(module, script, track_dir, **extra):
+    """Train `module` (`script` or an edited copy) on the tiny budget; its final parameters, from its checkpoint."""
+    module.train(module.Args(**TINY_ARGS, **BUDGET_ARGS[script], track_dir=str(track_dir), **extra))
     (run_dir,) = os.listdir(track_dir)
-    return proc, os.path.join(track_dir, run_dir)
+    return final_parameters(os.path.join(track_dir, run_dir))
 
 
 @pytest.fixture(scope="module")
 def unedited(tmp_path_factory):
     """Final parameters of each unedited script on the tiny budget."""
-    out = {}
-    for script, budget in BUDGET.items():
-        track = tmp_path_factory.mktemp(script.replace(".", "_"))
-        proc, run_dir = run_copy(os.path.join(ROOT, script), *TINY_FLAGS, *budget, track_dir=track / "runs")
-        assert "warning" not in proc.stderr, proc.stderr
-        out[script] = final_parameters(run_dir)
-    return out
+    return {script: train_copy(module, script, tmp_path_factory.mktemp(script.replace(".", "_")) / "runs")
+            for script, module in (("cascade_ppo_continuous.py", cpc), ("ppo_baseline.py", pb))}
 
 
 @pytest.mark.parametrize("script,edit,expected", CASES, ids=[f"{s[:-3]}-{e}" for s, e, _ in CASES])
-def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, unedited, tmp_path):
+def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, unedited, tmp_path, capsys):
     source = open(os.path.join(ROOT, script)).read()
     for old, new in EDITS[edit]:
         assert source.count(old) == 1, f"the edit's line is not in {script} exactly once: {old}"
         source = source.replace(old, new)
     copy = tmp_path / script
     copy.write_text(source)
-    flags = [*TINY_FLAGS, *BUDGET[script]]
-    switched, switched_dir = run_copy(str(copy), *flags, track_dir=tmp_path / "fast")
-    assert "Traceback" not in switched.stderr, switched.stderr  # a fast path that raises is a failed check
-    warnings = [line for line in switched.stderr.splitlines() if line.startswith("warning: fast path check")]
-    assert len(warnings) == len(expected), switched.stderr
+    module = import_copy(str(copy))
+    capsys.readouterr()
+    switched_params = train_copy(module, script, tmp_path / "fast")
+    stderr = capsys.readouterr().err
+    assert "Traceback" not in stderr, stderr  # a fast path that raises is a failed check
+    warnings = [line for line in stderr.splitlines() if line.startswith("warning: fast path check")]
+    assert len(warnings) == len(expected), stderr
     for line, part in zip(warnings, expected):
         assert part in line and "continuing by" in line, line
-    _, autograd_dir = run_copy(str(copy), *flags, "--autograd", track_dir=tmp_path / "autograd")
-    switched_params, edited = final_parameters(switched_dir), final_parameters(autograd_dir)
+    edited = train_copy(module, script, tmp_path / "autograd", autograd=True)
     # the edit takes effect exactly as autograd computes it (up to float rounding)...
     assert_close_parameters(switched_params, edited, 1e-4)
     # ...and it does change the result: by far more than that rounding (the first loss term's effect is small

@@ -9,7 +9,7 @@ import torch
 import cascade_ppo_continuous as cpc
 import learning_checks
 from cascade_plumbing.envs import OBS_CLIP, find_wrapper
-from helpers import error_line, only_run_dir, read_scalars, run_script
+from helpers import error_line, error_line_in_process, only_run_dir, read_scalars, run_script
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
 
@@ -127,7 +127,14 @@ BAD_INPUT = [
 
 @pytest.mark.parametrize("extra,message", BAD_INPUT)
 def test_bad_input_is_one_clear_line(tmp_path, extra, message):
-    assert message in error_line(run_script("cascade_ppo_continuous.py", "--track-dir", tmp_path / "runs", *extra))
+    assert message in error_line_in_process("cascade_ppo_continuous.py", "--track-dir", tmp_path / "runs", *extra)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_bad_input_on_the_command_line_is_one_line_and_exits_nonzero(tmp_path):
+    """One case through a real interpreter: the line on stderr, the exit code, nothing written."""
+    assert "unknown env id" in error_line(run_script("cascade_ppo_continuous.py", "--track-dir", tmp_path / "runs",
+                                                     "--env-id", "Hoper-v4"))
     assert not (tmp_path / "runs").exists()
 
 
@@ -135,7 +142,12 @@ def test_bad_input_is_one_clear_line(tmp_path, extra, message):
                                           (["--env-id", "Acrobot-v1"], "Box"),
                                           (["--total-timesteps", "100"], "smaller than one rollout batch")])
 def test_baseline_bad_input(tmp_path, extra, message):
-    assert message in error_line(run_script("ppo_baseline.py", "--track-dir", tmp_path / "runs", *extra))
+    argv = ["ppo_baseline.py", "--track-dir", tmp_path / "runs", *extra]
+    if extra[1] == "Pendulum-v9":  # one case through a real interpreter: stderr and the exit code
+        line = error_line(run_script(*argv))
+    else:
+        line = error_line_in_process(*argv)
+    assert message in line
     assert not (tmp_path / "runs").exists()
 
 
