@@ -198,6 +198,8 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     try:
         train(args, checkpoint)
     except BaseException as exc:
+        FINAL.clear()  # this run's test; a later train() in the same process (a notebook, the tests) has its own
+        FINISHING.clear()
         finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
         if isinstance(exc, KeyboardInterrupt):
             stopped(args, checkpoint, started)
@@ -206,3 +208,5 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     # interpreter exit Python resets its own handlers to the default, which would die by the signal silently).
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    FINAL.clear()
+    FINISHING.clear()
