@@ -1,38 +1,45 @@
 """Final performance over seeds with robust statistics: IQM, 95% stratified bootstrap CIs, probability of improvement.
 
-The statistics of Agarwal et al. (2021, "Deep RL at the edge of the statistical precipice"), written
-with numpy here (rliable is not available offline):
+The statistics of Agarwal et al. (2021, "Deep RL at the edge of the statistical precipice"), computed with
+their library, rliable (`rliable.library.get_interval_estimates`, `rliable.metrics`):
 
 - a run's score is its mean `eval/episodic_return` over its last `--final-window` evaluations;
-- IQM, the interquartile mean: sort the scores, drop the lowest and the highest floor(n/4), average
-  the rest (= `scipy.stats.trim_mean(scores, 0.25)`, what rliable uses; with fewer than 4 seeds it is
-  the plain mean);
-- 95% CIs by the stratified percentile bootstrap: a replicate resamples, with replacement, as many
-  runs as there are within each stratum (env; for a comparison, within each env and experiment
-  separately), recomputes the statistic, and the CI is the 2.5th..97.5th percentile over
-  `--reps` replicates;
-- probability of improvement P(X > Y) of experiment X over the baseline Y on one env: the share of
-  (run of X, run of Y) pairs where X scored higher, ties counting 1/2 (the Mann-Whitney U statistic
-  over n·m); over several envs, the mean of the per-env probabilities;
-- "all envs" IQM: scores divided by the baseline's mean score on the same env (so envs with returns
-  of different scale can be pooled), then the IQM of all (env, seed) scores, CI stratified by env.
-  Left out when the baseline is missing on an env or its mean score is not positive.
+- IQM, the interquartile mean (`metrics.aggregate_iqm`: `scipy.stats.trim_mean(scores, 0.25)`, which drops
+  the lowest and the highest floor(n/4); with fewer than 4 seeds it is the plain mean);
+- 95% CIs by the stratified percentile bootstrap: a replicate resamples, with replacement, as many runs as
+  there are within each stratum (env; for a comparison, within each env and experiment separately),
+  recomputes the statistic, and the CI is the 2.5th..97.5th percentile over `--reps` replicates;
+- probability of improvement P(X > Y) of experiment X over the baseline Y on one env
+  (`metrics.probability_of_improvement`): the share of (run of X, run of Y) pairs where X scored higher,
+  ties counting 1/2 (the Mann-Whitney U statistic over n·m); over several envs, the mean of the per-env
+  probabilities;
+- "all envs" IQM: scores divided by the baseline's mean score on the same env (so envs with returns of
+  different scale can be pooled), then the IQM of all (env, seed) scores, CI stratified by env; and the
+  performance profile of those normalized scores (`library.create_performance_profile`: the fraction of
+  runs scoring above tau, with CIs). Left out when the baseline is missing on an env, its mean score is not
+  positive, or an experiment has different numbers of seeds on different envs (rliable takes a runs x envs
+  matrix).
+
+`tests/test_plots.py` checks these numbers against a plain numpy implementation of the same statistics.
 
     python plots/final_performance.py --runs runs --baseline ppo_baseline
 
 Writes `<out>/<name>.png|.pdf` (IQM and CI per env), `<out>/<name>_improvement.png|.pdf`,
-`<out>/<name>.md` and `.csv`.
+`<out>/<name>_profile.png|.pdf` (performance profiles over all envs), `<out>/<name>.md` and `.csv`.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import tyro
+from rliable import library as rly
+from rliable import metrics, plot_utils
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # for `python plots/<script>.py`
 from plots import common  # noqa: E402
@@ -72,37 +79,16 @@ class Args:
     """keep runs that stop before the others of their env and experiment in the final numbers (noted either way)"""
 
 
-def iqm(scores: np.ndarray) -> np.ndarray:
-    """Interquartile mean along the last axis: drop the lowest and highest floor(n/4), average the rest."""
-    n = scores.shape[-1]
-    cut = int(0.25 * n)
-    return np.sort(scores, axis=-1)[..., cut: n - cut].mean(-1)
-
-
-def probability_of_improvement(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """P(X > Y) along the last axes: share of pairs (x_i, y_j) with x_i > y_j, ties counting 1/2."""
-    diff = x[..., :, None] - y[..., None, :]
-    return ((diff > 0) + 0.5 * (diff == 0)).mean((-2, -1))
-
-
-def stratified_bootstrap(
-    strata: Sequence[np.ndarray],
-    statistic: Callable[[list[np.ndarray]], np.ndarray],
-    reps: int,
-    rng: np.random.Generator,
-) -> np.ndarray:
-    """`reps` values of `statistic`, each on a resample (with replacement, same size) of every stratum.
-
-    statistic maps a list of [reps, n_s] arrays (one per stratum) to [reps] values.
-    """
-    resampled = [s[rng.integers(0, len(s), size=(reps, len(s)))] for s in strata]
-    return statistic(resampled)
-
-
-def percentile_ci(values: np.ndarray, confidence: float) -> tuple[float, float]:
-    tail = 100 * (1 - confidence) / 2
-    low, high = np.percentile(values, [tail, 100 - tail])
-    return float(low), float(high)
+def interval_estimate(scores: np.ndarray | tuple[np.ndarray, np.ndarray], statistic: Callable[..., float],
+                      args: Args, call: int) -> tuple[float, tuple[float, float]]:
+    """rliable's point estimate and stratified percentile-bootstrap CI of `statistic` on a runs x envs score matrix
+    (or a pair of them, for a comparison). `call` numbers the estimates, so each has its own reproducible seed."""
+    with warnings.catch_warnings():  # arch (rliable's bootstrap) deprecates the RandomState rliable hands it
+        warnings.simplefilter("ignore", FutureWarning)
+        points, intervals = rly.get_interval_estimates(
+            {"x": scores}, lambda *m: np.array([statistic(*m)]), reps=args.reps,
+            confidence_interval_size=args.confidence, random_state=np.random.RandomState([args.seed, call]))
+    return float(points["x"][0]), (float(intervals["x"][0, 0]), float(intervals["x"][1, 0]))
 
 
 def run_scores(runs: Sequence[common.Run], scalar: str, window: int) -> np.ndarray:
@@ -125,39 +111,43 @@ def main(args: Args) -> list[str]:
         common.fail("--final-window and --reps must be at least 1 and --confidence within (0, 1)")
     selection = common.select_runs(args.runs, args.envs, args.experiments, args.split_by, args.labels, [args.scalar],
                                    complete_only=not args.allow_incomplete)
-    rng = np.random.default_rng(args.seed)
     scores = {key: run_scores(runs, args.scalar, args.final_window) for key, runs in selection.groups.items()}
     base = find_baseline(selection, args.baseline)
     if base is None:
         common.note(f"no runs of the baseline '{args.baseline}' (found {common.short_list(selection.labels)}); "
                     "probability of improvement left out (set --baseline)")
     others = [label for label in selection.labels if label != base]
+    calls = iter(range(1_000_000))
 
-    def iqm_of_strata(resampled: list[np.ndarray]) -> np.ndarray:
-        return iqm(np.concatenate(resampled, axis=1))
+    def matrix(label: str, envs: list[str], what: str) -> np.ndarray | None:
+        """runs x envs scores of `label` (rliable's layout), or None (with a note) if the seed counts differ."""
+        counts = {len(scores[(e, label)]) for e in envs}
+        if len(counts) > 1:
+            common.note(f"no all-envs {what} for {label}: it has different numbers of seeds on different envs")
+            return None
+        return np.stack([scores[(e, label)] for e in envs], axis=1)
 
     # --- per env: IQM with CI, probability of improvement over the baseline with CI ---
     stats: dict[tuple[str, str], dict] = {}
     for (env, label), s in scores.items():
-        boot = stratified_bootstrap([s], iqm_of_strata, args.reps, rng)
+        point, ci = interval_estimate(s[:, None], metrics.aggregate_iqm, args, next(calls))
         sem = float(s.std(ddof=1) / np.sqrt(len(s))) if len(s) > 1 else None
         stats[(env, label)] = {"scores": s, "mean": float(s.mean()), "sem": sem, "median": float(np.median(s)),
-                               "iqm": float(iqm(s)), "ci": percentile_ci(boot, args.confidence)}
+                               "iqm": point, "ci": ci}
     improvement: dict[tuple[str, str], tuple[float, tuple[float, float]]] = {}
+    normalized: dict[str, np.ndarray] = {}  # runs x envs, scores / the baseline's mean score on the env
     if base is not None:
         for label in others:
             envs = [e for e in selection.envs if (e, label) in scores and (e, base) in scores]
-            for env_set, row in [([e], e) for e in envs] + ([(envs, ALL_ENVS)] if len(envs) > 1 else []):
-                strata = [s for e in env_set for s in (scores[(e, label)], scores[(e, base)])]
-
-                def mean_poi(resampled: list[np.ndarray]) -> np.ndarray:
-                    return np.mean([probability_of_improvement(x, y)
-                                    for x, y in zip(resampled[0::2], resampled[1::2])], axis=0)
-
-                point = float(np.mean([probability_of_improvement(scores[(e, label)], scores[(e, base)])
-                                       for e in env_set]))
-                boot = stratified_bootstrap(strata, mean_poi, args.reps, rng)
-                improvement[(row, label)] = (point, percentile_ci(boot, args.confidence))
+            for env in envs:
+                improvement[(env, label)] = interval_estimate(
+                    (scores[(env, label)][:, None], scores[(env, base)][:, None]), metrics.probability_of_improvement,
+                    args, next(calls))
+            if len(envs) > 1:
+                x, y = matrix(label, envs, "probability of improvement"), matrix(base, envs, "comparison")
+                if x is not None and y is not None:
+                    improvement[(ALL_ENVS, label)] = interval_estimate((x, y), metrics.probability_of_improvement,
+                                                                       args, next(calls))
         # pooled over envs: scores normalized by the baseline's mean score on each env
         if len(selection.envs) > 1:
             base_means = {e: scores[(e, base)].mean() for e in selection.envs if (e, base) in scores}
@@ -166,12 +156,15 @@ def main(args: Args) -> list[str]:
                 if set(envs) - set(base_means) or min(base_means[e] for e in envs) <= 0:
                     common.note(f"no all-envs IQM for {label}: the baseline is missing or scores <= 0 on some env")
                     continue
-                normalized = [scores[(e, label)] / base_means[e] for e in envs]
-                boot = stratified_bootstrap(normalized, iqm_of_strata, args.reps, rng)
-                pooled = np.concatenate(normalized)
+                m = matrix(label, envs, "IQM")
+                if m is None:
+                    continue
+                normalized[label] = m / np.array([base_means[e] for e in envs])
+                point, ci = interval_estimate(normalized[label], metrics.aggregate_iqm, args, next(calls))
+                pooled = normalized[label].ravel()
                 stats[(ALL_ENVS, label)] = {"scores": pooled, "mean": float(pooled.mean()), "sem": None,
-                                            "median": float(np.median(pooled)), "iqm": float(iqm(pooled)),
-                                            "ci": percentile_ci(boot, args.confidence), "normalized": True}
+                                            "median": float(np.median(pooled)), "iqm": point, "ci": ci,
+                                            "normalized": True}
 
     # --- tables ---
     level = f"{round(100 * args.confidence)}%"
@@ -196,7 +189,7 @@ def main(args: Args) -> list[str]:
             md_rows.append([env, label, "", "", "", "", "", f"{poi[0]:.2f} [{poi[1][0]:.2f}, {poi[1][1]:.2f}]"])
     window = "last evaluation" if args.final_window == 1 else f"mean of the last {args.final_window} evaluations"
     text = (f"Score of a run: `{args.scalar}`, {window}. IQM: interquartile mean over seeds; CIs: stratified "
-            f"percentile bootstrap, {args.reps} replicates (see plots/final_performance.py).\n\n"
+            f"percentile bootstrap, {args.reps} replicates, by rliable (see plots/final_performance.py).\n\n"
             + common.markdown_table(headers, md_rows))
     paths = [common.write_text(args.out, f"{args.name}.md", text),
              common.write_csv(args.out, f"{args.name}.csv",
@@ -236,6 +229,23 @@ def main(args: Args) -> list[str]:
         ax.set_xlim(-0.02, 1.02)
         ax.set_xlabel(f"P(experiment > {base}) with {level} CI")
         paths += common.save_figure(fig, args.out, f"{args.name}_improvement")
+
+    if normalized:  # rliable's performance profile: the fraction of (env, seed) runs scoring above tau
+        taus = np.linspace(0.0, max(1.5, max(float(m.max()) for m in normalized.values()) * 1.05), 101)
+        np.random.seed(args.seed)  # create_performance_profile bootstraps with numpy's global generator
+        profiles, profile_cis = rly.create_performance_profile(normalized, taus, reps=args.reps,
+                                                               confidence_interval_size=args.confidence)
+        fig, ax = plt.subplots(figsize=(6, 3.6), layout="constrained")
+        plot_utils.plot_performance_profiles(profiles, taus, performance_profile_cis=profile_cis, ax=ax,
+                                             colors={label: selection.color(label) for label in profiles},
+                                             xlabel=f"final return / {base} mean on the env (tau)",
+                                             ylabel="fraction of runs with score > tau", labelsize="medium",
+                                             ticklabelsize="small")
+        ax.axvline(1.0, color="0.5", ls="--", lw=1)
+        ax.legend([plt.Line2D([], [], color=selection.color(label), lw=2) for label in profiles], list(profiles),
+                  loc="upper right", fontsize=8)
+        ax.set_title(f"performance profiles over {len(selection.envs)} envs, {level} CIs", fontsize=9)
+        paths += common.save_figure(fig, args.out, f"{args.name}_profile")
     common.report(paths)
     return paths
 

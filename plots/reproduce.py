@@ -7,7 +7,7 @@ evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
 - `fig2_learning_curves.png|pdf`: evaluation return over env steps per env, mean ± standard error over
   seeds (the paper's Fig. 2 layout);
 - `final_performance.*`: a run's score is the mean of its last 3 evaluations; IQM with 95% stratified
-  bootstrap CIs and the probability that Cascade beats PPO;
+  bootstrap CIs and the probability that Cascade beats PPO (rliable), and rliable's performance profiles;
 - `fallback_tables.md` (Tables 1 and 3), `members.*` (Section 4.2), `runtime.md` (Table 2's runtime);
 - `summary.md`: the tables above next to the paper's numbers.
 
@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import tyro
+from rliable import metrics
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # for `python plots/<script>.py`
 from plots import analyze, common, fallback, final_performance, learning_curves, members  # noqa: E402
@@ -75,7 +76,8 @@ def summary(args: Args) -> str:
                 mean, sem = common.mean_sem(s)
                 cells.append(f"{common.fmt(float(mean), float(sem) if len(s) > 1 else None, 0)} (n={len(s)})")
         if len(scores) == 2:
-            p = float(final_performance.probability_of_improvement(scores["Cascade"], scores["PPO"]))
+            p = float(metrics.probability_of_improvement(np.asarray(scores["Cascade"])[:, None],
+                                                         np.asarray(scores["PPO"])[:, None]))
             cells.append(f"{p:.2f}")
         else:
             cells.append("–")

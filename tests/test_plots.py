@@ -95,24 +95,74 @@ def test_a_relaunched_seed_counts_once(runs, tmp_path, capsys):
     assert f"using {relaunch}" in capsys.readouterr().err
 
 
-def test_robust_statistics():
-    assert final_performance.iqm(np.arange(1.0, 9.0)) == pytest.approx(4.5)  # mean of 3, 4, 5, 6
-    assert final_performance.iqm(np.array([0.0, 1.0, 2.0, 100.0])) == pytest.approx(1.5)  # the outlier is cut
-    assert final_performance.iqm(np.array([3.0, 5.0])) == pytest.approx(4.0)  # < 4 seeds: the mean
+# The statistics of plots/final_performance.py, written out in numpy: the cross-check of what rliable computes there.
+def reference_iqm(scores):
+    """Interquartile mean along the last axis: drop the lowest and highest floor(n/4), average the rest."""
+    n = scores.shape[-1]
+    cut = int(0.25 * n)
+    return np.sort(scores, axis=-1)[..., cut: n - cut].mean(-1)
+
+
+def reference_improvement(x, y):
+    """P(X > Y) along the last axes: share of pairs (x_i, y_j) with x_i > y_j, ties counting 1/2."""
+    diff = x[..., :, None] - y[..., None, :]
+    return ((diff > 0) + 0.5 * (diff == 0)).mean((-2, -1))
+
+
+def reference_bootstrap(strata, statistic, reps, rng):
+    """`reps` values of `statistic`, each on a resample (with replacement, same size) of every stratum."""
+    return statistic([s[rng.integers(0, len(s), size=(reps, len(s)))] for s in strata])
+
+
+def reference_ci(values, confidence):
+    tail = 100 * (1 - confidence) / 2
+    low, high = np.percentile(values, [tail, 100 - tail])
+    return float(low), float(high)
+
+
+def test_reference_statistics():
+    assert reference_iqm(np.arange(1.0, 9.0)) == pytest.approx(4.5)  # mean of 3, 4, 5, 6
+    assert reference_iqm(np.array([0.0, 1.0, 2.0, 100.0])) == pytest.approx(1.5)  # the outlier is cut
+    assert reference_iqm(np.array([3.0, 5.0])) == pytest.approx(4.0)  # < 4 seeds: the mean
     x, y = np.array([1.0, 2.0, 3.0]), np.array([2.0, 0.0])
     # pairs: (1,2)<, (1,0)>, (2,2)=, (2,0)>, (3,2)>, (3,0)> -> (4 + 0.5) / 6
-    assert final_performance.probability_of_improvement(x, y) == pytest.approx(4.5 / 6)
+    assert reference_improvement(x, y) == pytest.approx(4.5 / 6)
     rng = np.random.default_rng(0)
     data = [rng.normal(size=10), rng.normal(size=10) + 5]
-    boot = final_performance.stratified_bootstrap(
-        data, lambda rs: np.concatenate(rs, axis=1).mean(1), 4000, np.random.default_rng(1))
+    boot = reference_bootstrap(data, lambda rs: np.concatenate(rs, axis=1).mean(1), 4000, np.random.default_rng(1))
     # each replicate keeps 10 runs from each stratum: the bootstrap mean centers on the data's mean
     assert boot.shape == (4000,) and boot.mean() == pytest.approx(np.concatenate(data).mean(), abs=0.05)
-    low, high = final_performance.percentile_ci(boot, 0.95)
+    low, high = reference_ci(boot, 0.95)
     assert low < np.concatenate(data).mean() < high
-    constant = final_performance.stratified_bootstrap([np.full(5, 2.0)], lambda rs: rs[0].mean(1), 100,
-                                                      np.random.default_rng(0))
-    assert final_performance.percentile_ci(constant, 0.95) == (2.0, 2.0)
+    constant = reference_bootstrap([np.full(5, 2.0)], lambda rs: rs[0].mean(1), 100, np.random.default_rng(0))
+    assert reference_ci(constant, 0.95) == (2.0, 2.0)
+
+
+@pytest.mark.parametrize("seeds", [3, 7])
+def test_rliable_estimates_match_the_numpy_reference(seeds):
+    """IQM, probability of improvement and their stratified bootstrap CIs as final_performance.py gets them from
+    rliable, against the reference above: equal point estimates; CIs equal up to the bootstrap's own noise."""
+    rng = np.random.default_rng(seeds)
+    x = rng.normal(1.0, 0.3, size=(seeds, 2)) * [1.0, 3.0]  # runs x envs, envs on different scales
+    y = rng.normal(0.9, 0.3, size=(seeds, 2)) * [1.0, 3.0]
+    args = final_performance.Args(reps=4000)
+    spread = x.max() - x.min()
+    # per env, and pooled over envs (the bootstrap stratified by env)
+    for matrix, strata in [(x[:, :1], [x[:, 0]]), (x, [x[:, 0], x[:, 1]])]:
+        point, (low, high) = final_performance.interval_estimate(matrix, final_performance.metrics.aggregate_iqm,
+                                                                 args, 0)
+        assert point == pytest.approx(reference_iqm(matrix.ravel()))
+        boot = reference_bootstrap(strata, lambda rs: reference_iqm(np.concatenate(rs, axis=1)), 20_000,
+                                   np.random.default_rng(1))
+        assert np.allclose((low, high), reference_ci(boot, 0.95), atol=0.05 * spread)
+    # rliable's probability of improvement runs scipy's Mann-Whitney test per replicate and env: fewer replicates
+    point, (low, high) = final_performance.interval_estimate((x, y), final_performance.metrics.probability_of_improvement,
+                                                             final_performance.Args(reps=1000), 1)
+    assert point == pytest.approx(np.mean([reference_improvement(x[:, e], y[:, e]) for e in range(2)]))
+    boot = reference_bootstrap([x[:, 0], y[:, 0], x[:, 1], y[:, 1]],
+                               lambda rs: np.mean([reference_improvement(a, b) for a, b in zip(rs[0::2], rs[1::2])], 0),
+                               20_000, np.random.default_rng(2))
+    assert np.allclose((low, high), reference_ci(boot, 0.95), atol=0.08)
 
 
 def test_final_performance_matches_logged_returns(runs, tmp_path):
@@ -150,7 +200,7 @@ def test_final_performance_over_several_envs_and_ten_seeds(tmp_path):
             for seed, final in enumerate(finals[(env, exp)], start=1):
                 write_synthetic_run(track, env, exp, seed, final)
     paths = final_performance.main(final_performance.Args(runs=(track,), out=str(tmp_path), reps=300))
-    assert_figures(paths, "final_performance", "final_performance_improvement")
+    assert_figures(paths, "final_performance", "final_performance_improvement", "final_performance_profile")
     rows = {(r["env"], r["experiment"]): r for r in read_csv(tmp_path / "final_performance.csv")}
     pooled = ("all envs", "Cascade")
     for env in ("Hopper-v4", "Walker2d-v4"):
@@ -163,7 +213,7 @@ def test_final_performance_over_several_envs_and_ten_seeds(tmp_path):
         np.mean([float(rows[(e, "Cascade")]["p_improvement"]) for e in ("Hopper-v4", "Walker2d-v4")]))
     normalized = np.concatenate([finals[(e, "cascade_ppo_continuous")] / finals[(e, "ppo_baseline")].mean()
                                  for e in ("Hopper-v4", "Walker2d-v4")])
-    assert float(rows[pooled]["iqm"]) == pytest.approx(final_performance.iqm(normalized))
+    assert float(rows[pooled]["iqm"]) == pytest.approx(reference_iqm(normalized))
     assert float(rows[pooled]["iqm_ci_low"]) <= float(rows[pooled]["iqm"]) <= float(rows[pooled]["iqm_ci_high"])
     paths = learning_curves.main(learning_curves.Args(runs=(track,), out=str(tmp_path), name="two_envs"))
     curves = read_csv(tmp_path / "two_envs.csv")
