@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from cascade_plumbing.checkpoints import load_checkpoint as load_script_checkpoint
 from cascade_plumbing.envs import make_env, make_vector_env
 from cascade_plumbing.errors import fail
-from cascade_plumbing.offpolicy import OffPolicyRun, Policy, check_replay_settings, evaluate_saved_policy
+from cascade_plumbing.offpolicy import OffPolicyRun, Policy, check_replay_settings, evaluate_saved_policy, minimize
 from cascade_plumbing.replay import ReplayBuffer, buffer_capacity
 from cascade_plumbing.runs import check_common_settings, run_main, script_name, seed_everything
 
@@ -343,34 +343,6 @@ def make_adam(params: list[nn.Parameter], lr: float, eps: float) -> torch.optim.
     return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
 
 
-def minimize(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
-    """`optimizer.zero_grad(); loss.backward(); optimizer.step()` for an optimizer over one parameter group, with
-    less overhead, still plain autograd: torch.autograd.grad computes the gradients of exactly the optimizer's
-    parameters (no other weight gradient, e.g. none of the critics' in the actor loss), and they go straight into
-    the fused Adam kernel that step() ends in (step() spends longer grouping and checking than the kernel takes).
-    Any other optimizer, and Adam's first step (it creates the state), take the plain path; the optimizer's state,
-    and so the checkpoints, are as step() leaves them (tests/test_sac_ddpg_updates.py checks it bit for bit)."""
-    group = optimizer.param_groups[0]
-    params = group["params"]
-    grads = list(torch.autograd.grad(loss, params, materialize_grads=True))
-    states = [optimizer.state.get(p) for p in params]
-    if (isinstance(optimizer, torch.optim.Adam) and group["fused"] and all(states) and not group["amsgrad"]
-            and not group["maximize"] and not group["decoupled_weight_decay"]):
-        steps = [state["step"] for state in states]
-        torch._foreach_add_(steps, 1)  # as step() does before the kernel
-        beta1, beta2 = group["betas"]
-        torch._fused_adam_(params, grads, [state["exp_avg"] for state in states],
-                           [state["exp_avg_sq"] for state in states], [], steps, amsgrad=False, lr=group["lr"],
-                           beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"], eps=group["eps"],
-                           maximize=False)
-        return
-    for param, grad in zip(params, grads):
-        param.grad = grad
-    optimizer.step()
-    for param in params:
-        param.grad = None
-
-
 def ddpg_update(args: Args, step_in_iteration: int, batch: tuple[torch.Tensor, ...], actor: CascadeActor,
                 target_actor: CascadeActor, qf: QNetworks, qf_target: QNetworks, q_optimizer: torch.optim.Optimizer,
                 actor_optimizer: torch.optim.Optimizer) -> dict:
@@ -385,7 +357,7 @@ def ddpg_update(args: Args, step_in_iteration: int, batch: tuple[torch.Tensor, .
         next_q_value = b_rewards + (1 - b_dones) * args.gamma * qf_target(b_next_obs, next_actions)[0]
     qf1_a_values = qf(b_obs, b_actions)[0]
     qf1_loss = F.mse_loss(qf1_a_values, next_q_value)
-    minimize(q_optimizer, qf1_loss)
+    minimize(q_optimizer, qf1_loss)  # zero_grad(); backward(); step(), bit for bit (cascade_plumbing.offpolicy)
     out = {"qf1_a_values": qf1_a_values, "qf1_loss": qf1_loss}
 
     if step_in_iteration % args.policy_frequency == 0:  # counted from 0 with each net (the paper's code)

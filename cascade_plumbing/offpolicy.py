@@ -1,4 +1,5 @@
-"""What the off-policy scripts (cascade_sac.py, cascade_ddpg.py) share and is not their algorithm: the checks of
+"""What the off-policy scripts (cascade_sac.py, cascade_ddpg.py) share and is not their algorithm: `minimize` (one
+optimizer step, as zero_grad/backward/step with less overhead), the checks of
 the settings they both have, the evaluation episodes, --evaluate of a saved model, and a run's bookkeeping
 (`OffPolicyRun`, on `record.RunRecord`: env steps into the replay buffer, the logs, evaluations, the non-finite
 guard, the checkpoint at the end of every iteration and resuming from it).
@@ -27,6 +28,33 @@ from .record import RunRecord
 from .replay import ReplayBuffer, available_memory, buffer_capacity, store_transition
 from .tracking import log_new_videos
 
+
+def minimize(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
+    """`optimizer.zero_grad(); loss.backward(); optimizer.step()` for an optimizer over one parameter group, with
+    less overhead, still plain autograd: torch.autograd.grad computes the gradients of exactly the optimizer's
+    parameters (no other weight gradient, e.g. none of the critics' in the actor loss), and they go straight into
+    the fused Adam kernel that step() ends in (step() spends longer grouping and checking than the kernel takes).
+    Any other optimizer, and Adam's first step (it creates the state), take the plain path; the optimizer's state,
+    and so the checkpoints, are as step() leaves them (tests/test_sac_ddpg_updates.py checks it bit for bit)."""
+    group = optimizer.param_groups[0]
+    params = group["params"]
+    grads = list(torch.autograd.grad(loss, params, materialize_grads=True))
+    states = [optimizer.state.get(p) for p in params]
+    if (isinstance(optimizer, torch.optim.Adam) and group["fused"] and all(states) and not group["amsgrad"]
+            and not group["maximize"] and not group["decoupled_weight_decay"]):
+        steps = [state["step"] for state in states]
+        torch._foreach_add_(steps, 1)  # as step() does before the kernel
+        beta1, beta2 = group["betas"]
+        torch._fused_adam_(params, grads, [state["exp_avg"] for state in states],
+                           [state["exp_avg_sq"] for state in states], [], steps, amsgrad=False, lr=group["lr"],
+                           beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"], eps=group["eps"],
+                           maximize=False)
+        return
+    for param, grad in zip(params, grads):
+        param.grad = grad
+    optimizer.step()
+    for param in params:
+        param.grad = None
 
 def check_replay_settings(args: Any, bounds_needed_because: str) -> None:
     """The settings both off-policy scripts have, checked after the script's own: the clipping, the warm-up, the
