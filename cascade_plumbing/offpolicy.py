@@ -56,6 +56,7 @@ def minimize(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
     for param in params:
         param.grad = None
 
+
 def check_replay_settings(args: Any, bounds_needed_because: str) -> None:
     """The settings both off-policy scripts have, checked after the script's own: the clipping, the warm-up, the
     replay buffer (and its memory), the evaluation, the env (a bounded Box action space, flat observations).

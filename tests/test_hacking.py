@@ -100,8 +100,7 @@ CASES = [  # script, edit, the parts the warnings must name (in order)
 ]
 
 
-TINY_ARGS = dict(env_id="Hopper-v4", num_steps=256, num_minibatches=4, update_epochs=2, eval_every=0,
-                 checkpoint_every=0, quiet=True)
+TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
 BUDGET_ARGS = {"cascade_ppo_continuous.py": dict(n=2, k=1024), "ppo_baseline.py": dict(total_timesteps=1024)}
 
 
@@ -120,17 +119,21 @@ def import_copy(path):
 
 
 def train_copy(module, script, track_dir, **extra):
-    """Train `module` (`script` or an edited copy) on the tiny budget; its final parameters, from its checkpoint."""
-    module.train(module.Args(**TINY_ARGS, **BUDGET_ARGS[script], track_dir=str(track_dir), **extra))
+    """Train `module` (`script` or an edited copy) on the tiny budget; its final parameters, from its checkpoint,
+    and the warnings of its fast-path checks."""
+    result = module.train(module.Args(**TINY_ARGS, **BUDGET_ARGS[script], track_dir=str(track_dir), **extra))
     (run_dir,) = os.listdir(track_dir)
-    return final_parameters(os.path.join(track_dir, run_dir))
+    return final_parameters(os.path.join(track_dir, run_dir)), result["fast_paths"].messages
 
 
 @pytest.fixture(scope="module")
 def unedited(tmp_path_factory):
     """Final parameters of each unedited script on the tiny budget."""
-    return {script: train_copy(module, script, tmp_path_factory.mktemp(script.replace(".", "_")) / "runs")
-            for script, module in (("cascade_ppo_continuous.py", cpc), ("ppo_baseline.py", pb))}
+    out = {}
+    for script, module in (("cascade_ppo_continuous.py", cpc), ("ppo_baseline.py", pb)):
+        out[script], warnings = train_copy(module, script, tmp_path_factory.mktemp(script.replace(".", "_")) / "runs")
+        assert warnings == [], warnings  # the unedited script keeps its fast paths
+    return out
 
 
 @pytest.mark.parametrize("script,edit,expected", CASES, ids=[f"{s[:-3]}-{e}" for s, e, _ in CASES])
@@ -143,14 +146,14 @@ def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, un
     copy.write_text(source)
     module = import_copy(str(copy))
     capsys.readouterr()
-    switched_params = train_copy(module, script, tmp_path / "fast")
+    switched_params, _ = train_copy(module, script, tmp_path / "fast")
     stderr = capsys.readouterr().err
     assert "Traceback" not in stderr, stderr  # a fast path that raises is a failed check
     warnings = [line for line in stderr.splitlines() if line.startswith("warning: fast path check")]
     assert len(warnings) == len(expected), stderr
     for line, part in zip(warnings, expected):
         assert part in line and "continuing by" in line, line
-    edited = train_copy(module, script, tmp_path / "autograd", autograd=True)
+    edited, _ = train_copy(module, script, tmp_path / "autograd", autograd=True)
     # the edit takes effect exactly as autograd computes it (up to float rounding)...
     assert_close_parameters(switched_params, edited, 1e-4)
     # ...and it does change the result: by far more than that rounding (the first loss term's effect is small
