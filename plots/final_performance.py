@@ -30,6 +30,7 @@ Writes `<out>/<name>.png|.pdf` (IQM and CI per env), `<out>/<name>_improvement.p
 
 from __future__ import annotations
 
+import itertools
 import os
 import sys
 import warnings
@@ -117,7 +118,7 @@ def main(args: Args) -> list[str]:
         common.note(f"no runs of the baseline '{args.baseline}' (found {common.short_list(selection.labels)}); "
                     "probability of improvement left out (set --baseline)")
     others = [label for label in selection.labels if label != base]
-    calls = iter(range(1_000_000))
+    calls = itertools.count()  # numbers the estimates: each gets its own seed
 
     def matrix(label: str, envs: list[str], what: str) -> np.ndarray | None:
         """runs x envs scores of `label` (rliable's layout), or None (with a note) if the seed counts differ."""
