@@ -11,11 +11,22 @@ until the last net is stacked), evaluation is off. Measured, once the full stack
   `policy_frequency` updates, less the critic; per env step), alpha (the same with --autotune, less
   without; SAC only, not in the total: alpha is fixed by default), targets (SAC: with the target update,
   less without; DDPG: the script's soft_update of both targets, per env step), sampling (buffer.sample);
-- peak RSS of the process.
+- peak RSS of the process;
+- the arithmetic floor of an update: the self time of its compute kernels (matmuls, activations and their
+  backward, the fused Adam) under torch.profiler, scaled to the unprofiled update time; what no removal of
+  per-operation overhead can go below with these kernels on this CPU;
+- the env's own limit: steps/s of the same wrapped training env with random actions (`env_sps`).
+
+`--cleanrl DIR --cleanrl-python PY` also times whole processes, interleaved: the SAC baseline
+(`cascade_sac.py --n 1 --hidden-size 256 --autotune --obs-reward-clip 0`, CleanRL's hyperparameters) against
+CleanRL's own `cleanrl/sac_continuous_action.py` from a CleanRL checkout DIR (its file is run as is, with its
+own dependencies in the venv of PY; nothing of it is copied here), --whole-random uniform-random steps then
+--whole-updates steps with updates, `--threads` torch threads each (OMP_NUM_THREADS for CleanRL).
 
     python benchmarks/offpolicy.py                        # Hopper-v4, all four configurations
     python benchmarks/offpolicy.py --env-id HalfCheetah-v4 --configs sac_baseline ddpg_baseline
     python benchmarks/offpolicy.py --ref HEAD~1           # this tree and an older commit, interleaved
+    python benchmarks/offpolicy.py --configs sac_baseline --cleanrl ../cleanrl --cleanrl-python ../cleanrl/.venv/bin/python
 
 `--ref REV` also runs every configuration from an older commit (exported to a temp folder), interleaved with
 the current ones, and prints the ratios (median and range over the repeats), so changes are judged side by
@@ -64,6 +75,14 @@ class Args:
     """also measure every configuration at this git revision, side by side"""
     json: bool = False
     """print the results as JSON instead of a table"""
+    cleanrl: str | None = None
+    """a CleanRL checkout: also time whole processes of the SAC baseline and CleanRL's sac_continuous_action.py"""
+    cleanrl_python: str = sys.executable
+    """the interpreter (of a venv with CleanRL's dependencies) that runs CleanRL's file"""
+    whole_random: int = 3000
+    """whole-process timing: uniform-random steps before updates start (--learning-starts of both)"""
+    whole_updates: int = 5000
+    """whole-process timing: steps with updates after the random ones"""
     worker: str | None = None
     """internal: run one configuration and print its JSON result"""
     root: str = ROOT
@@ -143,6 +162,42 @@ def measure_variants(variants: dict, a: Args) -> dict:
     return {name: statistics.median(values) for name, values in rounds.items()}
 
 
+COMPUTE_KERNELS = {  # the arithmetic of an update: matmuls, activations and their backward, the fused Adam
+    "aten::mm", "aten::bmm", "aten::addmm", "aten::baddbmm", "aten::tanh", "aten::tanh_backward", "aten::relu",
+    "aten::clamp_min", "aten::threshold_backward", "aten::sigmoid", "aten::sigmoid_backward", "aten::exp",
+    "aten::_fused_adam_",
+}
+
+
+def arithmetic_floor(update_calls: list, rounds: int = 10) -> float:
+    """ms per update spent inside compute kernels (self time under torch.profiler) over `rounds` passes of
+    `update_calls` (one pass: the updates of `policy_frequency` consecutive steps)."""
+    from torch.profiler import profile
+
+    with profile() as prof:
+        for _ in range(rounds):
+            for call in update_calls:
+                call()
+    kernel_us = sum(e.self_cpu_time_total for e in prof.key_averages() if e.key in COMPUTE_KERNELS)
+    return kernel_us / 1e3 / (rounds * len(update_calls))
+
+
+def env_limit(env_id: str, clip: float, steps: int = 3000) -> float:
+    """steps/s of the scripts' training env (the same wrappers) with uniform random actions."""
+    from cascade_plumbing.envs import make_env, make_vector_env
+
+    envs = make_vector_env([make_env(env_id, clip=clip)])
+    envs.reset(seed=0)
+    envs.single_action_space.seed(0)
+    actions = [envs.single_action_space.sample()[None] for _ in range(steps)]
+    start = time.perf_counter()
+    for action in actions:
+        envs.step(action)
+    elapsed = time.perf_counter() - start
+    envs.close()
+    return steps / elapsed
+
+
 def run_worker(config: str, a: Args) -> dict:
     sys.path.insert(0, a.root)
     import importlib
@@ -173,6 +228,10 @@ def run_worker(config: str, a: Args) -> dict:
         if len(marks) == a.warmup + a.updates + 1:
             splitter = split_sac if script_name == "cascade_sac" else split_ddpg
             state["parts"] = splitter(script, a, update_args, state["buffer"])
+            args, device = update_args[0], update_args[2][0].device
+            state["floor"] = arithmetic_floor([
+                (lambda step=step: update(args, step, state["buffer"].sample(args.batch_size, device), *update_args[3:]))
+                for step in range(args.policy_frequency)])
             raise Stop
         return out
 
@@ -184,7 +243,8 @@ def run_worker(config: str, a: Args) -> dict:
     sps = a.updates / (marks[-1] - marks[a.warmup])
     parts = state["parts"]
     total = sum(v for k, v in parts.items() if k != "alpha")
-    return {"config": config, "sps": sps, "parts_ms": parts, "update_ms": total, "torch": torch.__version__,
+    return {"config": config, "sps": sps, "parts_ms": parts, "update_ms": total, "floor_ms": state["floor"],
+            "env_sps": env_limit(a.env_id, args.obs_reward_clip), "torch": torch.__version__,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
@@ -195,6 +255,45 @@ def export(rev: str) -> str:
         sys.exit(f"error: cannot export --ref {rev}: {archive.stderr.decode().strip()}")
     subprocess.run(["tar", "-x", "-C", root], input=archive.stdout, check=True)
     return root
+
+
+def timed_process(cmd: list[str], env: dict, cwd: str) -> tuple[float, float]:
+    """Wall-clock and CPU seconds (user + system) of one whole process."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=cwd)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if out.returncode != 0:
+        sys.exit(f"error: {' '.join(cmd[:2])} failed:\n{out.stderr[-3000:]}")
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def against_cleanrl(a: Args) -> dict:
+    """Whole processes, interleaved: the SAC baseline and CleanRL's sac_continuous_action.py, same
+    hyperparameters (CleanRL's: alpha autotuned, no clipping), --threads torch threads each."""
+    cleanrl_file = os.path.join(a.cleanrl, "cleanrl", "sac_continuous_action.py")
+    if not os.path.isfile(cleanrl_file):
+        sys.exit(f"error: no {cleanrl_file}; --cleanrl takes the root of a CleanRL checkout")
+    total, folder = a.whole_random + a.whole_updates, tempfile.mkdtemp(prefix="offpolicy_whole_")
+    ours = [sys.executable, os.path.join(ROOT, "cascade_sac.py"), "--env-id", a.env_id, "--n", "1",
+            "--hidden-size", "256", "--k", str(total), "--learning-starts", str(a.whole_random), "--autotune",
+            "--obs-reward-clip", "0", "--eval-every", "0", "--quiet", "--torch-threads", str(a.threads),
+            "--track-dir", folder]
+    theirs = [a.cleanrl_python, cleanrl_file, "--env-id", a.env_id, "--total-timesteps", str(total),
+              "--learning-starts", str(a.whole_random), "--no-cuda"]
+    env = {**os.environ, "OMP_NUM_THREADS": str(a.threads), "MKL_NUM_THREADS": str(a.threads)}
+    times: dict[str, list[tuple[float, float]]] = {"sac_baseline": [], "cleanrl": []}
+    for repeat in range(a.repeats):
+        times["sac_baseline"].append(timed_process(ours, env, ROOT))
+        times["cleanrl"].append(timed_process(theirs, {**env, "PYTHONPATH": a.cleanrl}, folder))
+        if not a.json:
+            print(f"  whole process, repeat {repeat + 1}/{a.repeats}: sac_baseline {times['sac_baseline'][-1][0]:.1f} s, "
+                  f"CleanRL {times['cleanrl'][-1][0]:.1f} s", file=sys.stderr)
+    ratios = [c[0] / o[0] for o, c in zip(times["sac_baseline"], times["cleanrl"])]
+    return {name: {"wall_s": statistics.median(w for w, _ in t), "cpu_s": statistics.median(c for _, c in t),
+                   "all_wall_s": [w for w, _ in t]} for name, t in times.items()} | {
+        "speedup": statistics.median(ratios), "speedup_range": [min(ratios), max(ratios)]}
 
 
 def main() -> None:
@@ -232,6 +331,8 @@ def main() -> None:
             "update_ms": statistics.median(r["update_ms"] for r in rs),
             "all_update_ms": [r["update_ms"] for r in rs],
             "parts_ms": {p: statistics.median(r["parts_ms"][p] for r in rs) for p in PARTS},
+            "floor_ms": statistics.median(r["floor_ms"] for r in rs),
+            "env_sps": statistics.median(r["env_sps"] for r in rs),
             "peak_rss_mb": statistics.median(r["peak_rss_mb"] for r in rs)}
     ratios = {}
     if a.ref:
@@ -241,26 +342,34 @@ def main() -> None:
             upd = [r["update_ms"] / t["update_ms"] for t, r in zip(this, ref)]
             ratios[config] = {"sps": statistics.median(sps), "sps_range": [min(sps), max(sps)],
                               "update_speedup": statistics.median(upd), "update_speedup_range": [min(upd), max(upd)]}
+    whole = against_cleanrl(a) if a.cleanrl else {}
     meta = dataclasses.asdict(a) | {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                     "load_avg": os.getloadavg()}
     if a.json:
-        print(json.dumps({"meta": meta, "results": summary, "ratios": ratios}, indent=2))
+        print(json.dumps({"meta": meta, "results": summary, "ratios": ratios, "whole_process": whole}, indent=2))
         return
     print(f"\n{a.env_id}: median of {a.repeats} runs; {a.updates} training steps with updates after {a.warmup} "
           f"warm-up updates; split from {a.rounds} x {a.calls} calls per part; {a.threads} torch thread(s); "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
-    print("| configuration | tree | steps/s | ms/update | sampling | critic | actor | targets | (alpha) | peak RSS MB |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| configuration | tree | steps/s | env alone, steps/s | ms/update | arithmetic floor | sampling | critic | "
+          "actor | targets | (alpha) | peak RSS MB |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for key, r in summary.items():
         config, tree = key.split("@")
         p = r["parts_ms"]
         label = a.ref if tree == "ref" else "this tree"
-        print(f"| {config} | {label} | {r['sps']:.0f} | {r['update_ms']:.2f} | "
+        print(f"| {config} | {label} | {r['sps']:.0f} | {r['env_sps']:.0f} | {r['update_ms']:.2f} | {r['floor_ms']:.2f} | "
               + " | ".join(f"{p[name]:.2f}" for name in PARTS) + f" | {r['peak_rss_mb']:.0f} |")
     for config, q in ratios.items():
         print(f"{config}: this tree / {a.ref}: steps/s x{q['sps']:.2f} [{q['sps_range'][0]:.2f}, "
               f"{q['sps_range'][1]:.2f}], update speed x{q['update_speedup']:.2f} "
               f"[{q['update_speedup_range'][0]:.2f}, {q['update_speedup_range'][1]:.2f}]")
+    if whole:
+        print(f"\nWhole processes, {a.whole_random} random + {a.whole_updates} update steps, {a.threads} thread(s), "
+              f"median of {a.repeats}: SAC baseline {whole['sac_baseline']['wall_s']:.1f} s "
+              f"({whole['sac_baseline']['cpu_s']:.1f} s CPU), CleanRL {whole['cleanrl']['wall_s']:.1f} s "
+              f"({whole['cleanrl']['cpu_s']:.1f} s CPU): x{whole['speedup']:.2f} "
+              f"[{whole['speedup_range'][0]:.2f}, {whole['speedup_range'][1]:.2f}] in wall-clock")
 
 
 if __name__ == "__main__":
