@@ -226,6 +226,8 @@ def run_worker(config: str, a: Args) -> dict:
         out = update(*update_args)
         marks.append(time.perf_counter())
         if len(marks) == a.warmup + a.updates + 1:
+            # the window closes here: the split below calls the script's update, i.e. this function, again
+            state["sps"] = a.updates / (marks[-1] - marks[a.warmup])
             splitter = split_sac if script_name == "cascade_sac" else split_ddpg
             state["parts"] = splitter(script, a, update_args, state["buffer"])
             args, device = update_args[0], update_args[2][0].device
@@ -240,7 +242,7 @@ def run_worker(config: str, a: Args) -> dict:
         script.train(args, on_iteration_start=on_iteration_start)
     except Stop:
         pass
-    sps = a.updates / (marks[-1] - marks[a.warmup])
+    sps = state["sps"]
     parts = state["parts"]
     total = sum(v for k, v in parts.items() if k != "alpha")
     return {"config": config, "sps": sps, "parts_ms": parts, "update_ms": total, "floor_ms": state["floor"],
