@@ -103,6 +103,21 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("cascade", CASCADE, "--n 6 --k 1000000 --eval-every 50000"),
         ("ppo", PPO, "--total-timesteps 6000000 --eval-every 50000"),
     ]),
+    "ablations": ("Fig. 3, 4, 5, 10, 11, 12, 13 as results/ runs them (eval every 50k; standard Cascade is `reproduce`'s); "
+                  "run with --envs Ant-v4 Walker2d-v4", [
+        (label, script, f"{flags} --eval-every 50000") for label, script, flags in (
+            ("ppo_h16_cyclic", PPO, "--total-timesteps 6000000 --hidden-size 16 --lr-schedule cyclic --cycle-steps 1000000"),
+            ("cascade_frozen", CASCADE, "--n 6 --k 1000000 --freeze-previous"),
+            ("cascade_start_full", CASCADE, "--n 6 --k 1000000 --start-full"),
+            ("cascade_fallback0.05", CASCADE, "--n 6 --k 1000000 --fallback-init 0.05"),
+            ("cascade_fallback0.9", CASCADE, "--n 6 --k 1000000 --fallback-init 0.9"),
+            ("cascade_n2", CASCADE, "--n 2 --k 3000000"),
+            ("cascade_n4", CASCADE, "--n 4 --k 1500000"),
+            ("cascade_global_lr", CASCADE, "--n 6 --k 1000000 --lr-schedule global"),
+            ("cascade_nonorm", CASCADE, "--n 6 --k 1000000 --no-normalize"),
+            ("cascade_frozen_nonorm", CASCADE, "--n 6 --k 1000000 --freeze-previous --no-normalize"),
+        )
+    ]),
     "baselines": ("Fig. 3, 9: PPO over 2M..6M steps, and one 16-wide net with a cyclic LR (a fresh Adam each cycle, the paper's code)", [
         *[(f"ppo_{m}M", PPO, f"--total-timesteps {m}000000") for m in range(2, 7)],
         ("ppo_h16_cyclic", PPO, "--total-timesteps 6000000 --hidden-size 16 --lr-schedule cyclic --cycle-steps 1000000"),

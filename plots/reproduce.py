@@ -9,7 +9,10 @@ evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
 - `final_performance.*`: a run's score is the mean of its last 3 evaluations; IQM with 95% stratified
   bootstrap CIs and the probability that Cascade beats PPO (rliable), and rliable's performance profiles;
 - `fallback_tables.md` (Tables 1 and 3), `members.*` (Section 4.2), `runtime.md` (Table 2's runtime);
-- `summary.md`: the tables above next to the paper's numbers.
+- `summary.md`: the tables above next to the paper's numbers;
+- for each ablation of `python sweep.py --preset ablations` with exported runs (Fig. 3, 4, 5, 10, 11, 12,
+  13 on Ant-v4 and Walker2d-v4): `<fig>_*.png|pdf`, its curves beside the standard Cascade runs of the same
+  envs and seeds, and a section of `summary.md` with each variant's final score and the paper's statement.
 
     python plots/reproduce.py                       # results/per_run -> results/figures
 """
@@ -35,6 +38,35 @@ PAPER_TABLE1 = {"Ant-v4": [0.96, 0.96, 0.96, 0.96, 0.88], "Walker2d-v4": [0.82, 
 PAPER_TABLE3 = {"Ant-v4": [0.051, 0.039, 0.041, 0.046, 0.087], "Walker2d-v4": [0.198, 0.174, 0.144, 0.113, 0.095]}
 PAPER_VERDICT = {"HalfCheetah-v4": "Cascade better", "Ant-v4": "Cascade better", "Hopper-v4": "draw",
                  "Walker2d-v4": "draw", "Humanoid-v4": "Cascade better"}
+
+
+# The ablations (Section 4.3-4.4, Appendix C-G): figure file, paper figure, experiments drawn (exp names of
+# `sweep.py --preset ablations`, and `reproduce` for the standard runs), their labels, the paper's statement
+ABLATION_ENVS = ("Ant-v4", "Walker2d-v4")
+ABLATIONS = (
+    ("fig3_cyclic_base_net", "Fig. 3", ("cascade", "ppo_h16_cyclic"),
+     ("cascade=Cascade", "ppo_h16_cyclic=PPO, one 16-wide net, cyclic LR"),
+     "a clear gap between one base net trained by PPO with the cyclic LR and Cascade, on both envs (Section 4.1)"),
+    ("fig4_frozen", "Fig. 4", ("cascade", "cascade_frozen"),
+     ("cascade=Cascade", "cascade_frozen=only the newest net trains"),
+     "keeping the earlier nets frozen severely worsens performance (Section 4.3)"),
+    ("fig5_start_full", "Fig. 5", ("cascade", "cascade_start_full"),
+     ("cascade=Cascade", "cascade_start_full=the 6-net stack from the start"),
+     "the sequential variant clearly outperforms the full stack trained from the start; on Ant-v4 it ends at "
+     "almost twice its score (Section 4.4)"),
+    ("fig10_nets", "Fig. 10", ("cascade_n2", "cascade_n4", "cascade"),
+     ("cascade_n2=a new net every 3M", "cascade_n4=every 1.5M", "cascade=every 1M (standard)"),
+     "more nets within the 6M steps score higher, up to n = 6 (Appendix D)"),
+    ("fig11_fallback_init", "Fig. 11", ("cascade_fallback0.05", "cascade", "cascade_fallback0.9"),
+     ("cascade_fallback0.05=fallback init 0.05", "cascade=0.5 (standard)", "cascade_fallback0.9=0.9"),
+     "0.5 is the strongest initial fallback on both envs; 0.05 performs poorly (Appendix E)"),
+    ("fig12_global_lr", "Fig. 12", ("cascade", "cascade_global_lr"),
+     ("cascade=Cascade (cyclic LR)", "cascade_global_lr=one LR decay over the whole run"),
+     "no significant difference, apart from a dip in the last iteration of the global schedule (Appendix F)"),
+    ("fig13_frozen_nonorm", "Fig. 13", ("cascade_nonorm", "cascade_frozen_nonorm"),
+     ("cascade_nonorm=Cascade, no normalization", "cascade_frozen_nonorm=frozen, no normalization"),
+     "without normalization, frozen and standard Cascade end at about the same score (Appendix G)"),
+)
 
 
 @dataclass
@@ -128,19 +160,57 @@ def main(args: Args) -> list[str]:
     if not envs:
         common.fail(f"no exported runs of {', '.join(ENV_ORDER)} in {args.runs}")
     runs = (args.runs,)
+    fig2 = ("cascade", "ppo")  # the ablations' runs share the folder
     paths = learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name="fig2_learning_curves",
-                                                      envs=envs, labels=LABELS))
-    paths += final_performance.main(final_performance.Args(runs=runs, out=args.out, envs=envs, labels=LABELS,
+                                                      envs=envs, experiments=fig2, labels=LABELS))
+    paths += final_performance.main(final_performance.Args(runs=runs, out=args.out, envs=envs, experiments=fig2,
+                                                           labels=LABELS,
                                                            baseline="ppo", final_window=args.final_window,
                                                            reps=args.reps, allow_incomplete=args.allow_incomplete))
     paths += fallback.main(fallback.Args(runs=runs, out=args.out, envs=envs, experiments=("cascade",),
                                          labels=LABELS, final_window=args.final_window,
                                          allow_incomplete=args.allow_incomplete))
     paths += members.main(members.Args(runs=runs, out=args.out, envs=envs, experiments=("cascade",), labels=LABELS))
-    paths += analyze.table2(analyze.Table2(runs=runs, out=args.out, name="runtime", envs=envs, labels=LABELS,
-                                           allow_incomplete=args.allow_incomplete))
-    paths.append(common.write_text(args.out, "summary.md", summary(args)))
+    paths += analyze.table2(analyze.Table2(runs=runs, out=args.out, name="runtime", envs=envs, experiments=fig2,
+                                           labels=LABELS, allow_incomplete=args.allow_incomplete))
+    sections = []
+    for name, figure, experiments, labels, paper in ablations_present(args.runs):
+        ablation_envs = tuple(e for e in ABLATION_ENVS if e in envs)
+        paths += learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name=name, envs=ablation_envs,
+                                                          experiments=experiments, labels=labels))
+        sections.append(ablation_summary(args, figure, experiments, labels, paper, ablation_envs))
+    paths.append(common.write_text(args.out, "summary.md", summary(args) + "".join(sections)))
     return paths
+
+
+def ablations_present(folder: str) -> list[tuple]:
+    """The ablations with at least one exported run of a variant (an experiment other than standard Cascade)."""
+    names = [common.parse_run_name(path) for path in common.find_run_dirs([folder])]
+    exported = {(name[0], name[1]) for name in names if name is not None}
+    return [a for a in ABLATIONS
+            if any((env, exp) in exported for env in ABLATION_ENVS for exp in a[2] if exp != "cascade")]
+
+
+def ablation_summary(args: Args, figure: str, experiments: tuple, labels: tuple, paper: str, envs: tuple) -> str:
+    """One ablation's final scores per env and experiment (mean ± standard error, seeds) and the paper's statement."""
+    selection = common.select_runs((args.runs,), envs, experiments, labels=labels,
+                                   complete_only=not args.allow_incomplete)
+    names = [label.split("=", 1)[1] for label in labels]
+    rows = []
+    for env in envs:
+        cells = []
+        for label in names:
+            runs = selection.groups.get((env, label), [])
+            if runs:
+                s = final_scores(runs, args.final_window)
+                mean, sem = common.mean_sem(s)
+                cells.append(f"{common.fmt(float(mean), float(sem) if len(s) > 1 else None, 0)} "
+                             f"(seeds {', '.join(str(r.seed) for r in runs)})")
+            else:
+                cells.append("–")
+        rows.append([env, *cells])
+    return "\n".join(["", f"## {figure}: final score (mean of the last {args.final_window} evaluations)", "",
+                      common.markdown_table(["env", *names], rows), "", f"Paper: {paper}.", ""])
 
 
 if __name__ == "__main__":

@@ -389,6 +389,45 @@ def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
     assert f"{np.mean(scores['cascade']):.0f} ± " in row and f"{np.mean(scores['ppo']):.0f} ± " in row, row
 
 
+def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
+    """An ablation's figure and summary section appear once a variant's runs are exported, with its scores;
+    Fig. 2 keeps drawing standard Cascade and PPO only, though the ablation runs share the folder."""
+    import json
+
+    from plots import reproduce
+
+    sample, runs = os.path.join(ROOT, "results", "sample"), tmp_path / "per_run"
+    runs.mkdir()
+    scores = {}
+    for name in sorted(os.listdir(sample)):
+        data = json.load(open(os.path.join(sample, name)))
+        shutil.copy(os.path.join(sample, name), runs / name)
+        exp, seed = data["hparams"]["exp_name"], data["hparams"]["seed"]
+        # the same runs as Ant-v4 runs, and seed 1 of Cascade as the frozen variant with halved returns
+        variants = [(exp, 1.0)] + ([("cascade_frozen", 0.5)] if (exp, seed) == ("cascade", "1") else [])
+        for new_exp, factor in variants:
+            run = json.loads(json.dumps(data))
+            run["hparams"].update(env_id="Ant-v4", exp_name=new_exp)
+            run["name"] = run["name"].replace("Hopper-v4", "Ant-v4").replace(f"__{exp}__", f"__{new_exp}__")
+            returns = run["scalars"]["eval/episodic_return"]
+            returns["values"] = [v * factor for v in returns["values"]]
+            scores.setdefault(new_exp, []).append(np.mean(returns["values"][-3:]))
+            json.dump(run, open(runs / f"{run['name']}.json", "w"))
+    paths = reproduce.main(reproduce.Args(runs=str(runs), out=str(tmp_path / "out"), reps=100))
+    names = {os.path.basename(p) for p in paths}
+    assert "fig4_frozen.png" in names, names
+    assert not any(n.startswith(("fig3_", "fig5_", "fig10_", "fig11_", "fig12_", "fig13_")) for n in names), names
+    summary = open(tmp_path / "out" / "summary.md").read()
+    section = summary[summary.index("## Fig. 4"):]
+    row = next(line for line in section.splitlines() if line.startswith("| Ant-v4 |"))
+    assert f"{np.mean(scores['cascade']):.0f} ± " in row and f"{scores['cascade_frozen'][0]:.0f} (seeds 1)" in row, row
+    assert "severely worsens" in section
+    fig2 = next(line for line in summary.splitlines() if line.startswith("| Ant-v4 |"))  # Fig. 2's table comes first
+    assert f"{np.mean(scores['cascade']):.0f} ± " in fig2 and "(n=2)" in fig2, fig2
+    curves = open(tmp_path / "out" / "fig2_learning_curves.csv").read()
+    assert "frozen" not in curves
+
+
 def write_fake_run(root, name, steps, value=1.0):
     """A run folder with `eval/episodic_return` logged at `steps` (TensorBoard's own writer)."""
     from torch.utils.tensorboard import SummaryWriter
