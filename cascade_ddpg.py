@@ -452,7 +452,7 @@ def train(args: Args, checkpoint: dict | None = None,
             if random_action:
                 actions = run.random_actions()
             else:
-                with torch.no_grad():
+                with torch.inference_mode():  # acting: no autograd bookkeeping at all
                     actions, _, _ = actor(torch.as_tensor(run.next_obs, dtype=torch.float32, device=device))
                     actions = add_noise(actions, actor, args.exploration_noise)
                 actions = actions.cpu().numpy()

@@ -472,7 +472,7 @@ def train(args: Args, checkpoint: dict | None = None,
             if random_action:
                 actions = run.random_actions()
             else:
-                with torch.no_grad():
+                with torch.inference_mode():  # acting: no autograd bookkeeping at all
                     actions, _, _ = actor.get_action(torch.as_tensor(run.next_obs, dtype=torch.float32, device=device))
                 actions = actions.cpu().numpy()
             run.step(actions, buffer, global_step)
