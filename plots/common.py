@@ -466,11 +466,12 @@ def figure_legend(fig, axes) -> None:
 
 
 def save_figure(fig, out: str, stem: str) -> list[str]:
-    """Write `<out>/<stem>.png` and `.pdf`; returns their paths."""
+    """Write `<out>/<stem>.png` and `.pdf`; returns their paths. No creation date in the PDF, so rebuilding
+    unchanged results rewrites identical files (a clean `git status`)."""
     os.makedirs(out, exist_ok=True)
     paths = [os.path.join(out, f"{stem}.{ext}") for ext in ("png", "pdf")]
     for path in paths:
-        fig.savefig(path)
+        fig.savefig(path, metadata={"CreationDate": None} if path.endswith(".pdf") else None)
     import matplotlib.pyplot as plt
 
     plt.close(fig)
