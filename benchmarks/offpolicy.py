@@ -13,8 +13,8 @@ until the last net is stacked), evaluation is off. Measured, once the full stack
   less without; DDPG: the script's soft_update of both targets, per env step), sampling (buffer.sample);
 - peak RSS of the process;
 - the arithmetic floor of an update: the self time of its compute kernels (matmuls, activations and their
-  backward, the fused Adam) under torch.profiler, scaled to the unprofiled update time; what no removal of
-  per-operation overhead can go below with these kernels on this CPU;
+  backward, the fused Adam) under torch.profiler, per update (the profiler slows the rest, not the kernels);
+  what no removal of per-operation overhead can go below with these kernels on this CPU;
 - the env's own limit: steps/s of the same wrapped training env with random actions (`env_sps`).
 
 `--cleanrl DIR --cleanrl-python PY` also times whole processes, interleaved: the SAC baseline
