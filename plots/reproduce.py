@@ -87,6 +87,12 @@ def final_scores(runs: list[common.Run], window: int) -> np.ndarray:
     return np.array([r.series("eval/episodic_return").last(window) for r in runs])
 
 
+def mean_and_error(scores: np.ndarray) -> str:
+    """`mean ± standard error` of final scores over seeds (the mean alone for one seed), rounded to integers."""
+    mean, sem = common.mean_sem(scores)
+    return common.fmt(float(mean), float(sem) if len(scores) > 1 else None, 0)
+
+
 def summary(args: Args) -> str:
     """The reproduction next to the paper's numbers, per env."""
     selection = common.select_runs((args.runs,), [e for e in ENV_ORDER if e in envs_present(args.runs)],
@@ -105,8 +111,7 @@ def summary(args: Args) -> str:
             if s is None:
                 cells.append("–")
             else:
-                mean, sem = common.mean_sem(s)
-                cells.append(f"{common.fmt(float(mean), float(sem) if len(s) > 1 else None, 0)} (n={len(s)})")
+                cells.append(f"{mean_and_error(s)} (n={len(s)})")
         if len(scores) == 2:
             p = float(metrics.probability_of_improvement(np.asarray(scores["Cascade"])[:, None],
                                                          np.asarray(scores["PPO"])[:, None]))
@@ -202,9 +207,7 @@ def ablation_summary(args: Args, figure: str, experiments: tuple, labels: tuple,
         for label in names:
             runs = selection.groups.get((env, label), [])
             if runs:
-                s = final_scores(runs, args.final_window)
-                mean, sem = common.mean_sem(s)
-                cells.append(f"{common.fmt(float(mean), float(sem) if len(s) > 1 else None, 0)} "
+                cells.append(f"{mean_and_error(final_scores(runs, args.final_window))} "
                              f"(seeds {', '.join(str(r.seed) for r in runs)})")
             else:
                 cells.append("–")
