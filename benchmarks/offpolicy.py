@@ -3,7 +3,12 @@
 Each configuration runs `train` of its script in a fresh subprocess (so peak memory is its own) with the
 script's own nets, optimizers and update function. The run is cut short: the nets are stacked without
 waiting for updates (`--no-restart-on-new-net --keep-buffer`, k = --k; the update function is skipped
-until the last net is stacked), evaluation is off. Measured, once the full stack is updated:
+until the last net is stacked), evaluation is off. A baseline (n = 1) runs as many steps as its Cascade
+(4 x --k for SAC, 6 x --k for DDPG, as one iteration) and is measured over the same steps: the cost of an
+env step and of the logging changes as the policy learns (a Hopper that falls at once is cheaper to
+simulate than one that hops), so windows at different points of training are not comparable (measured:
+the DDPG baseline made ~400 steps/s over steps 225-525 of a run, ~285 over steps 750-2500). Measured,
+once the full stack is updated:
 
 - steps/s of the training loop (env step, acting, sampling, update, bookkeeping) over --updates steps;
 - ms per update split into parts, by calling the script's update function on the live objects with its
@@ -57,12 +62,12 @@ class Args:
     """environment to train on (Hopper-v4; HalfCheetah-v4 as an option)"""
     configs: tuple[str, ...] = ("cascade_sac", "sac_baseline", "cascade_ddpg", "ddpg_baseline")
     """configurations to measure"""
-    k: int = 700
+    k: int = 1000
     """steps per iteration of the shortened run (the last net's iteration holds warm-up and measured updates)"""
     warmup: int = 50
     """updates of the full stack before measuring"""
-    updates: int = 300
-    """measured training steps (each with one update)"""
+    updates: int = 800
+    """measured training steps (each with one update; a short window is at the mercy of one slow episode)"""
     calls: int = 40
     """update calls per part and round for the split"""
     rounds: int = 3
@@ -95,6 +100,7 @@ CONFIGS = {  # script, its arguments
     "cascade_ddpg": ("cascade_ddpg", dict(n=6, hidden_size=16)),
     "ddpg_baseline": ("cascade_ddpg", dict(n=1, hidden_size=64)),
 }
+ITERATIONS = {"cascade_sac": 4, "cascade_ddpg": 6}  # every configuration of a script runs this many x --k steps
 PARTS = ("sampling", "critic", "actor", "targets", "alpha")
 
 
@@ -210,7 +216,9 @@ def run_worker(config: str, a: Args) -> dict:
     n = extra["n"]
     update_name = "sac_update" if script_name == "cascade_sac" else "ddpg_update"
     update = getattr(script, update_name)
-    args = script.Args(env_id=a.env_id, k=a.k, learning_starts=a.k // 4, keep_buffer=True,
+    k = a.k * ITERATIONS[script_name] // n  # the same run length for a Cascade and its baseline
+    first_measured = k - a.k  # step in the last iteration: the last --k steps of the run for every configuration
+    args = script.Args(env_id=a.env_id, k=k, learning_starts=a.k // 4, keep_buffer=True,
                        restart_on_new_net=False, eval_every=0, eval_members=False, quiet=True,
                        torch_threads=a.threads, track_dir=tempfile.mkdtemp(prefix="offpolicy_"), **extra)
     assert a.warmup + a.updates + 1 < a.k, "--k must exceed --warmup + --updates"
@@ -221,13 +229,14 @@ def run_worker(config: str, a: Args) -> dict:
         state["buffer"] = s["buffer"]
 
     def measured_update(*update_args):
-        if update_args[3].size < n:  # the shortened run: no updates before the full stack
+        if update_args[3].size < n or update_args[1] < first_measured:  # not yet the run's last --k steps
             return {"alpha": update_args[8]} if script_name == "cascade_sac" else {}
         out = update(*update_args)
         marks.append(time.perf_counter())
         if len(marks) == a.warmup + a.updates + 1:
-            # the window closes here: the split below calls the script's update, i.e. this function, again
+            # the window closes here; the split below calls the script's own update again, not this function
             state["sps"] = a.updates / (marks[-1] - marks[a.warmup])
+            setattr(script, update_name, update)
             splitter = split_sac if script_name == "cascade_sac" else split_ddpg
             state["parts"] = splitter(script, a, update_args, state["buffer"])
             args, device = update_args[0], update_args[2][0].device
