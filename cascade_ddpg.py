@@ -61,7 +61,7 @@ class Args:
     torch_deterministic: bool = True
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
     torch_threads: int = 1
-    """torch CPU threads"""
+    """torch CPU threads; 1: these nets are too small for a second thread to pay (README, speed of SAC and DDPG)"""
     cuda: bool = False
     """use CUDA if available"""
     track_dir: str = "runs"
