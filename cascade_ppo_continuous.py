@@ -311,7 +311,7 @@ class CascadeActor(nn.Module):
         log_std = weight.T @ log_stds  # the same sum for the per-net log-std vectors
         fallback = torch.sigmoid(fallback_logit)
         if cache is not None:
-            cache.update(fallback=fallback, weight=weight)
+            cache.update(fallback_logit=fallback_logit, weight=weight)
         return mean, log_std, fallback, weight
 
     def member(self, obs: torch.Tensor, net: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -225,7 +225,8 @@ def ppo_loss_gradients(
 
 def cascade_backward(actor: nn.Module, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
     """Write every actor parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `actor(obs, cache)`."""
-    activations, means, fallback, weight = (cache[key] for key in ("activations", "means", "fallback", "weight"))
+    activations, means, fallback_logit, weight = (cache[key] for key in ("activations", "means", "fallback_logit",
+                                                                          "weight"))
     hidden_layers = actor.hidden_layers
     mean_weight, mean_bias, fallback_weight, fallback_bias, log_std = (  # one lookup each: nn.Module's are slow
         actor.mean_weight, actor.mean_bias, actor.fallback_weight, actor.fallback_bias, actor.log_std)
@@ -236,14 +237,17 @@ def cascade_backward(actor: nn.Module, cache: dict, grad_mean: torch.Tensor, gra
     torch.bmm(hidden.transpose(1, 2), grad_means, out=mean_weight.grad)
     torch.sum(grad_means, 1, keepdim=True, out=mean_bias.grad)
     grad_hidden = torch.bmm(grad_means, mean_weight.transpose(1, 2))  # [n, B, H]
-    if fallback.shape[0]:
+    if fallback_logit.shape[0]:
         # Fallback k (net k >= 2) acts through C_k = l_k C_{k-1} + (1 - l_k) b_k, and C_n changes by
         # later_k = prod_{j>k} l_j per unit of C_k, so with g = (dL/dmean, dL/dlog_std) and z_k = logit(l_k):
-        #   dL/dz_k = l_k (1 - l_k) later_k <g, C_{k-1} - b_k> = S_{k-1} - l_k S_k,
-        # where S_k = sum_{i<=k} w_i <g, b_i> = later_k <g, C_k> (a cumulative sum, no division).
+        #   dL/dz_k = l_k (1 - l_k) later_k <g, C_{k-1} - b_k> = (1 - l_k) S_{k-1} - l_k w_k q_k,
+        # where q_k = <g, b_k> and S_k = sum_{i<=k} w_i q_i = later_k <g, C_k> (a cumulative sum, no division).
+        # Written as S_{k-1} - l_k S_k it would cancel ~-log10(1 - l_k) digits once a fallback saturates;
+        # 1 - l_k = sigmoid(-z_k) keeps its digits.
         weighted_q = torch.addcmul((grad_means * means).sum(-1), weight, log_std @ grad_log_std.T)  # [n, B]
-        partial_sums = weighted_q.cumsum_(0)  # S_1..S_n
-        grad_logit = torch.addcmul(partial_sums[:-1], fallback, partial_sums[1:], value=-1.0).unsqueeze(-1)
+        partial_sums = weighted_q.cumsum(0)  # S_1..S_n
+        grad_logit = (torch.sigmoid(-fallback_logit) * partial_sums[:-1]
+                      - torch.sigmoid(fallback_logit) * weighted_q[1:]).unsqueeze(-1)
         torch.bmm(hidden[1:].transpose(1, 2), grad_logit, out=fallback_weight.grad)
         torch.sum(grad_logit, 1, keepdim=True, out=fallback_bias.grad)
         grad_hidden[1:].baddbmm_(grad_logit, fallback_weight.transpose(1, 2))
