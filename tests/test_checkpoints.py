@@ -280,7 +280,7 @@ def test_nan_guard_says_what_it_kept_and_what_to_change(poisoned_iteration, expe
     ("cascade_ppo_continuous.py", ["--n", "2", "--k", "65536", "--num-envs", "2"], signal.SIGTERM),
     ("ppo_baseline.py", ["--total-timesteps", "131072"], signal.SIGTERM),
     ("cascade_ppo_discrete.py", ["--n", "2", "--k", "65536"], signal.SIGINT),
-    ("cascade_sac.py", ["--n", "2", "--k", "3000", "--learning-starts", "500", "--batch-size", "64"], signal.SIGTERM),
+    ("cascade_sac.py", ["--n", "2", "--k", "1000", "--learning-starts", "500", "--batch-size", "64"], signal.SIGTERM),
 ], ids=["cascade-int", "cascade-term", "ppo-term", "discrete-int", "sac-term"])
 def test_stopping_a_run_is_one_line(script, extra, signum, tmp_path):
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) or SIGTERM: one line on where the
