@@ -1,0 +1,170 @@
+"""Can the tests fail? Plant one known bug at a time in a copy of the repository and run the tests that
+should catch it: every mutation must make them fail ("caught"). A mutation that passes ("missed") is a
+bug in the method the suite would let through.
+
+    python tests/mutations.py                 # every mutation (~10 min on 2 cores)
+    python tests/mutations.py --only sac      # the mutations whose name contains "sac"
+
+Each mutation replaces one exact line (or part of one) of a script or of `cascade_plumbing/fast.py`; the
+unmutated copy is run first and must pass, so that a caught mutation is caught by the tests, not by an
+already-failing one. Not part of the suite (pytest collects test_*.py only): it runs the suite's files many
+times over. Exits 1 if any mutation is missed or no longer applies (the line it edits was changed: update it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import tyro
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+FLAGSHIP, FAST, DISCRETE = "cascade_ppo_continuous.py", "cascade_plumbing/fast.py", "cascade_ppo_discrete.py"
+SAC, DDPG = "cascade_sac.py", "cascade_ddpg.py"
+FLAGSHIP_TESTS = ("tests/test_method.py", "tests/test_gradients.py", "tests/test_hacking.py")
+DISCRETE_TESTS = ("tests/test_discrete_math.py", "tests/test_discrete.py")
+OFF_POLICY_TESTS = ("tests/test_sac_ddpg_updates.py", "tests/test_sac_ddpg.py::test_sac_actor_matches_plain_loop",
+                    "tests/test_sac_ddpg.py::test_ddpg_actor_matches_plain_loop",
+                    "tests/test_sac_ddpg.py::test_truncation_bootstraps_and_termination_does_not")
+
+
+@dataclasses.dataclass(frozen=True)
+class Mutation:
+    name: str
+    file: str
+    old: str
+    new: str
+    tests: tuple[str, ...]
+
+
+MUTATIONS = [
+    # the flagship's section 1: the combination (Eq. 1 unrolled), the nets, the loss
+    Mutation("flagship: log w_i + z_i instead of - z_i", FLAGSHIP, "log_weight[1:] -= fallback_logit",
+             "log_weight[1:] += fallback_logit", FLAGSHIP_TESTS),
+    Mutation("flagship: w_i includes l_i itself", FLAGSHIP, ".triu(-1)", ".triu(0)", FLAGSHIP_TESTS),
+    Mutation("flagship: fallback head on the net below", FLAGSHIP, "fallback_logit = stacked_affine(hidden[1:],",
+             "fallback_logit = stacked_affine(hidden[:-1],", FLAGSHIP_TESTS),
+    Mutation("flagship: unclipped surrogate (min)", FLAGSHIP, "pg_loss = torch.max(pg_loss1, pg_loss2).mean()",
+             "pg_loss = torch.min(pg_loss1, pg_loss2).mean()", FLAGSHIP_TESTS),
+    Mutation("flagship: log-std of net 1 only", FLAGSHIP, "log_std = weight.T @ log_stds",
+             "log_std = log_stds[:1].expand(weight.shape[1], -1)", FLAGSHIP_TESTS),
+    # the flagship's hand-written backward (section 2), checked against section 1
+    Mutation("fast: dL/dz with l_k for 1 - l_k", FAST, "grad_logit = (torch.sigmoid(-fallback_logit) *",
+             "grad_logit = (torch.sigmoid(fallback_logit) *", FLAGSHIP_TESTS),
+    Mutation("fast: dL/dz with S_k for S_(k-1)", FAST, "* partial_sums[:-1]", "* partial_sums[1:]",
+             FLAGSHIP_TESTS),
+    Mutation("fast: frozen nets get gradients", FAST, "param.grad[: actor.frozen_rows(first_net)] = 0.0", "pass",
+             FLAGSHIP_TESTS),
+    Mutation("fast: no tanh derivative", FAST, "grad_z = tanh_backward(grad_hidden, hidden)", "grad_z = grad_hidden",
+             FLAGSHIP_TESTS),
+    # discrete PPO
+    Mutation("discrete: l_i for 1 - l_i", DISCRETE, "return torch.cat([ones, 1.0 - fallback]) * later",
+             "return torch.cat([ones, fallback]) * later", DISCRETE_TESTS),
+    Mutation("discrete: prod over j >= i", DISCRETE,
+             "later = torch.cat([torch.cumprod(fallback.flip(0), 0).flip(0), ones])",
+             "later = torch.cat([ones, torch.cumprod(fallback.flip(0), 0).flip(0)])", DISCRETE_TESTS),
+    Mutation("discrete: GAE cut at the wrong step", DISCRETE, "else dones[t + 1])", "else dones[t])",
+             DISCRETE_TESTS),
+    Mutation("discrete: GAE without lambda", DISCRETE, "lastgaelam = delta + gamma * gae_lambda * nextnonterminal",
+             "lastgaelam = delta + gamma * nextnonterminal", DISCRETE_TESTS),
+    Mutation("discrete: value clipped around the returns", DISCRETE,
+             'v_clipped = mb["values"] + torch.clamp(newvalue - mb["values"]',
+             'v_clipped = mb["returns"] + torch.clamp(newvalue - mb["returns"]', DISCRETE_TESTS),
+    Mutation("discrete: entropy penalized", DISCRETE, "loss = pg_loss - args.ent_coef * entropy_loss",
+             "loss = pg_loss + args.ent_coef * entropy_loss", DISCRETE_TESTS),
+    Mutation("discrete: gradients accumulate", DISCRETE, "            optimizer.zero_grad()\n", "", DISCRETE_TESTS),
+    Mutation("discrete: one frozen net too few", DISCRETE, "rows = max(self.num_frozen - first_net, 0)",
+             "rows = max(self.num_frozen - first_net - 1, 0)", DISCRETE_TESTS),
+    Mutation("discrete: no gradient clipping", DISCRETE, "nn.utils.clip_grad_norm_(params, args.max_grad_norm)",
+             "pass", DISCRETE_TESTS),
+    # SAC
+    Mutation("sac: l_i for 1 - l_i", SAC, "torch.cat([ones, torch.rsub(fallback, 1.0)]) * later",
+             "torch.cat([ones, fallback]) * later", OFF_POLICY_TESTS),
+    Mutation("sac: max of the twin targets", SAC, "qf_target(b_next_obs, next_actions).min(0).values",
+             "qf_target(b_next_obs, next_actions).max(0).values", OFF_POLICY_TESTS),
+    Mutation("sac: terminations bootstrap", SAC, "next_q_value = b_rewards + (1 - b_dones) * args.gamma",
+             "next_q_value = b_rewards + args.gamma", OFF_POLICY_TESTS),
+    Mutation("sac: entropy bonus in the target with the wrong sign", SAC, "- alpha * next_log_pi.view(-1)",
+             "+ alpha * next_log_pi.view(-1)", OFF_POLICY_TESTS),
+    Mutation("sac: target update keeps 1 - tau of the critic", SAC,
+             "torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)",
+             "torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), 1 - tau)", OFF_POLICY_TESTS),
+    Mutation("sac: actor delay in the wrong phase", SAC, "if step_in_iteration % args.policy_frequency == 0:",
+             "if step_in_iteration % args.policy_frequency == 1:", OFF_POLICY_TESTS),
+    # DDPG
+    Mutation("ddpg: l_i for 1 - l_i", DDPG, "torch.cat([ones, torch.rsub(fallback, 1.0)]) * later",
+             "torch.cat([ones, fallback]) * later", OFF_POLICY_TESTS),
+    Mutation("ddpg: terminations bootstrap", DDPG, "next_q_value = b_rewards + (1 - b_dones) * args.gamma",
+             "next_q_value = b_rewards + args.gamma", OFF_POLICY_TESTS),
+    Mutation("ddpg: target update keeps 1 - tau of the critic", DDPG,
+             "torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)",
+             "torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), 1 - tau)", OFF_POLICY_TESTS),
+]
+
+
+@dataclasses.dataclass
+class Args:
+    only: str = ""
+    """run only the mutations whose name contains this text (case-insensitive); empty: all"""
+    keep: bool = False
+    """keep the temporary copies (one folder per mutation) to look at a missed one"""
+
+
+def copy_repository(destination: str) -> None:
+    shutil.copytree(ROOT, destination, ignore=shutil.ignore_patterns(
+        ".git", ".venv", "sweeps", "runs", "results", "videos", "wandb", "__pycache__", "*.egg-info"))
+
+
+def run_tests(folder: str, tests: tuple[str, ...]) -> tuple[bool, str]:
+    """pytest -x on `tests` in `folder`, importing the scripts and the package from that folder."""
+    env = {**os.environ, "PYTHONPATH": folder}  # ahead of the editable install of cascade_plumbing
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests],
+                          cwd=folder, capture_output=True, text=True, env=env)
+    lines = [line for line in proc.stdout.splitlines() if line.strip()]
+    failed = next((line.split(" - ")[0] for line in lines if line.startswith("FAILED")), "")
+    return proc.returncode == 0, failed or (lines[-1] if lines else proc.stderr[-300:])
+
+
+def main(args: Args) -> int:
+    chosen = [m for m in MUTATIONS if args.only.lower() in m.name.lower()]
+    if not chosen:
+        sys.exit(f"error: no mutation's name contains {args.only!r}; names: {', '.join(m.name for m in MUTATIONS)}")
+    work = tempfile.mkdtemp(prefix="cascade_mutations_")
+    clean = os.path.join(work, "unmutated")
+    copy_repository(clean)
+    for tests in sorted({m.tests for m in chosen}):
+        passed, what = run_tests(clean, tests)
+        if not passed:
+            sys.exit(f"error: the unmutated tests {' '.join(tests)} fail ({what}): fix them before checking mutations")
+    bad = 0
+    for i, mutation in enumerate(chosen):
+        folder = os.path.join(work, f"mutation_{i}")
+        copy_repository(folder)
+        path = os.path.join(folder, mutation.file)
+        with open(path) as f:
+            source = f.read()
+        if source.count(mutation.old) != 1:
+            print(f"STALE   {mutation.name}: {mutation.old!r} is not in {mutation.file} exactly once", flush=True)
+            bad += 1
+            continue
+        with open(path, "w") as f:
+            f.write(source.replace(mutation.old, mutation.new))
+        start = time.time()
+        passed, what = run_tests(folder, mutation.tests)
+        bad += passed
+        print(f"{'MISSED' if passed else 'caught'}  {mutation.name} ({time.time() - start:.0f} s): {what}", flush=True)
+        if not args.keep:
+            shutil.rmtree(folder)
+    if not args.keep:
+        shutil.rmtree(work)
+    print(f"{len(chosen) - bad} of {len(chosen)} mutations caught")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(tyro.cli(Args)))
