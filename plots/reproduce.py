@@ -12,7 +12,9 @@ evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
 - `summary.md`: the tables above next to the paper's numbers;
 - for each ablation of `python sweep.py --preset ablations` with exported runs (Fig. 3, 4, 5, 10, 11, 12,
   13 on Ant-v4 and Walker2d-v4): `<fig>_*.png|pdf`, its curves beside the standard Cascade runs of the same
-  envs and seeds, and a section of `summary.md` with each variant's final score and the paper's statement.
+  envs and seeds, and a section of `summary.md` with each variant's final score and the paper's statement;
+  from the fallback-init runs of Fig. 11 also the paper's Fig. 6 and 7 and Table 1 for each initial fallback
+  (`fig6_fig7_fallback_init_product.*`, `_per_net.*`, `_tables.md`).
 
     python plots/reproduce.py                       # results/per_run -> results/figures
 """
@@ -184,6 +186,11 @@ def main(args: Args) -> list[str]:
         paths += learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name=name, envs=ablation_envs,
                                                           experiments=experiments, labels=labels))
         sections.append(ablation_summary(args, figure, experiments, labels, paper, ablation_envs))
+        if name == "fig11_fallback_init":  # Fig. 6 (fallback product) and 7 (each net's fallback) per initial fallback
+            paths += fallback.main(fallback.Args(runs=runs, out=args.out, name="fig6_fig7_fallback_init",
+                                                 envs=ablation_envs, experiments=experiments, labels=labels,
+                                                 final_window=args.final_window,
+                                                 allow_incomplete=args.allow_incomplete))
     paths.append(common.write_text(args.out, "summary.md", summary(args) + "".join(sections)))
     return paths
 

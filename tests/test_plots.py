@@ -404,7 +404,9 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
         shutil.copy(os.path.join(sample, name), runs / name)
         exp, seed = data["hparams"]["exp_name"], data["hparams"]["seed"]
         # the same runs as Ant-v4 runs, and seed 1 of Cascade as the frozen variant with halved returns
-        variants = [(exp, 1.0)] + ([("cascade_frozen", 0.5)] if (exp, seed) == ("cascade", "1") else [])
+        # and as the fallback-init 0.9 variant with its fallback product scaled by 1.5 (Fig. 6)
+        variants = [(exp, 1.0)] + ([("cascade_frozen", 0.5), ("cascade_fallback0.9", 1.0)]
+                                   if (exp, seed) == ("cascade", "1") else [])
         for new_exp, factor in variants:
             run = json.loads(json.dumps(data))
             run["hparams"].update(env_id="Ant-v4", exp_name=new_exp)
@@ -412,11 +414,20 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
             returns = run["scalars"]["eval/episodic_return"]
             returns["values"] = [v * factor for v in returns["values"]]
             scores.setdefault(new_exp, []).append(np.mean(returns["values"][-3:]))
+            if new_exp == "cascade_fallback0.9":
+                product = run["scalars"]["cascade/fallback_product"]
+                product["values"] = [v * 1.5 for v in product["values"]]
+                scores["product0.9"] = product["values"][-3:]
             json.dump(run, open(runs / f"{run['name']}.json", "w"))
     paths = reproduce.main(reproduce.Args(runs=str(runs), out=str(tmp_path / "out"), reps=100))
     names = {os.path.basename(p) for p in paths}
-    assert "fig4_frozen.png" in names, names
-    assert not any(n.startswith(("fig3_", "fig5_", "fig10_", "fig11_", "fig12_", "fig13_")) for n in names), names
+    assert {"fig4_frozen.png", "fig11_fallback_init.png", "fig6_fig7_fallback_init_product.png",
+            "fig6_fig7_fallback_init_per_net.png"} <= names, names
+    assert not any(n.startswith(("fig3_", "fig5_", "fig10_", "fig12_", "fig13_")) for n in names), names
+    table1 = read_csv(tmp_path / "out" / "fig6_fig7_fallback_init_tables.csv")
+    products = {row["experiment"]: float(row["mean"]) for row in table1 if row["quantity"] == "fallback_product"}
+    assert products.keys() == {"0.5 (standard)", "0.9"}, products  # Fig. 6 draws the fallback-init runs only
+    assert products["0.9"] == pytest.approx(np.mean(scores["product0.9"]), rel=1e-6), products
     summary = open(tmp_path / "out" / "summary.md").read()
     section = summary[summary.index("## Fig. 4"):]
     row = next(line for line in section.splitlines() if line.startswith("| Ant-v4 |"))
