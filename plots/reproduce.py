@@ -11,8 +11,8 @@ evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
 - `fallback_tables.md` (Tables 1 and 3), `members.*` (Section 4.2), `runtime.md` (Table 2's runtime);
 - `summary.md`: the tables above next to the paper's numbers;
 - for each ablation of `python sweep.py --preset ablations` with exported runs (Fig. 3, 4, 5, 10, 11, 12,
-  13 on Ant-v4 and Walker2d-v4): `<fig>_*.png|pdf`, its curves beside the standard Cascade runs of the same
-  envs and seeds, and a section of `summary.md` with each variant's final score and the paper's statement;
+  13 on Ant-v4 and Walker2d-v4; Fig. 8 of `--preset tiny` on its envs): `<fig>_*.png|pdf`, its curves beside
+  the standard Cascade runs of the same envs and seeds, and a section of `summary.md` with each variant's final score and the paper's statement;
   from the fallback-init runs of Fig. 11 also the paper's Fig. 6 and 7 and Table 1 for each initial fallback
   (`fig6_fig7_fallback_init_product.*`, `_per_net.*`, `_tables.md`).
 
@@ -43,31 +43,38 @@ PAPER_VERDICT = {"HalfCheetah-v4": "Cascade better", "Ant-v4": "Cascade better",
 
 
 # The ablations (Section 4.3-4.4, Appendix C-G): figure file, paper figure, experiments drawn (exp names of
-# `sweep.py --preset ablations`, and `reproduce` for the standard runs), their labels, the paper's statement
+# `sweep.py --preset ablations`, and `reproduce` for the standard runs), their labels, the paper's statement, and
+# the envs drawn (None: every env with a run of a variant)
 ABLATION_ENVS = ("Ant-v4", "Walker2d-v4")
 ABLATIONS = (
     ("fig3_cyclic_base_net", "Fig. 3", ("cascade", "ppo_h16_cyclic"),
      ("cascade=Cascade", "ppo_h16_cyclic=PPO, one 16-wide net, cyclic LR"),
-     "a clear gap between one base net trained by PPO with the cyclic LR and Cascade, on both envs (Section 4.1)"),
+     "a clear gap between one base net trained by PPO with the cyclic LR and Cascade, on both envs "
+     "(Section 4.1)", ABLATION_ENVS),
     ("fig4_frozen", "Fig. 4", ("cascade", "cascade_frozen"),
      ("cascade=Cascade", "cascade_frozen=only the newest net trains"),
-     "keeping the earlier nets frozen severely worsens performance (Section 4.3)"),
+     "keeping the earlier nets frozen severely worsens performance (Section 4.3)", ABLATION_ENVS),
     ("fig5_start_full", "Fig. 5", ("cascade", "cascade_start_full"),
      ("cascade=Cascade", "cascade_start_full=the 6-net stack from the start"),
      "the sequential variant clearly outperforms the full stack trained from the start; on Ant-v4 it ends at "
-     "almost twice its score (Section 4.4)"),
+     "almost twice its score (Section 4.4)", ABLATION_ENVS),
     ("fig10_nets", "Fig. 10", ("cascade_n2", "cascade_n4", "cascade"),
      ("cascade_n2=a new net every 3M", "cascade_n4=every 1.5M", "cascade=every 1M (standard)"),
-     "more nets within the 6M steps score higher, up to n = 6 (Appendix D)"),
+     "more nets within the 6M steps score higher, up to n = 6 (Appendix D)", ABLATION_ENVS),
     ("fig11_fallback_init", "Fig. 11", ("cascade_fallback0.05", "cascade", "cascade_fallback0.9"),
      ("cascade_fallback0.05=fallback init 0.05", "cascade=0.5 (standard)", "cascade_fallback0.9=0.9"),
-     "0.5 is the strongest initial fallback on both envs; 0.05 performs poorly (Appendix E)"),
+     "0.5 is the strongest initial fallback on both envs; 0.05 performs poorly (Appendix E)", ABLATION_ENVS),
     ("fig12_global_lr", "Fig. 12", ("cascade", "cascade_global_lr"),
      ("cascade=Cascade (cyclic LR)", "cascade_global_lr=one LR decay over the whole run"),
-     "no significant difference, apart from a dip in the last iteration of the global schedule (Appendix F)"),
+     "no significant difference, apart from a dip in the last iteration of the global schedule (Appendix F)",
+     ABLATION_ENVS),
     ("fig13_frozen_nonorm", "Fig. 13", ("cascade_nonorm", "cascade_frozen_nonorm"),
      ("cascade_nonorm=Cascade, no normalization", "cascade_frozen_nonorm=frozen, no normalization"),
-     "without normalization, frozen and standard Cascade end at about the same score (Appendix G)"),
+     "without normalization, frozen and standard Cascade end at about the same score (Appendix G)", ABLATION_ENVS),
+    ("fig8_tiny", "Fig. 8", ("cascade_tiny_k500k", "cascade_tiny_k1M"),
+     ("cascade_tiny_k500k=16 nets of one hidden unit, a new one every 0.5M", "cascade_tiny_k1M=every 1M"),
+     "the ensemble's performance increases with each added base net, even when weak nets are added in large "
+     "numbers (the paper's abstract; runs: `sweep.py --preset tiny`)", None),
 )
 
 
@@ -181,8 +188,7 @@ def main(args: Args) -> list[str]:
     paths += analyze.table2(analyze.Table2(runs=runs, out=args.out, name="runtime", envs=envs, experiments=fig2,
                                            labels=LABELS, allow_incomplete=args.allow_incomplete))
     sections = []
-    for name, figure, experiments, labels, paper in ablations_present(args.runs):
-        ablation_envs = tuple(e for e in ABLATION_ENVS if e in envs)
+    for name, figure, experiments, labels, paper, ablation_envs in ablations_present(args.runs):
         paths += learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name=name, envs=ablation_envs,
                                                           experiments=experiments, labels=labels))
         sections.append(ablation_summary(args, figure, experiments, labels, paper, ablation_envs))
@@ -196,11 +202,18 @@ def main(args: Args) -> list[str]:
 
 
 def ablations_present(folder: str) -> list[tuple]:
-    """The ablations with at least one exported run of a variant (an experiment other than standard Cascade)."""
+    """The ablations with at least one exported run of a variant (an experiment other than standard Cascade), each
+    with the envs it is drawn for: those of its list that have runs (every env with a variant's run if None)."""
     names = [common.parse_run_name(path) for path in common.find_run_dirs([folder])]
     exported = {(name[0], name[1]) for name in names if name is not None}
-    return [a for a in ABLATIONS
-            if any((env, exp) in exported for env in ABLATION_ENVS for exp in a[2] if exp != "cascade")]
+    present = []
+    for name, figure, experiments, labels, paper, envs in ABLATIONS:
+        variants = [exp for exp in experiments if exp != "cascade"]
+        with_runs = tuple(env for env in (envs or ENV_ORDER) if any((env, exp) in exported for exp in variants))
+        if with_runs:
+            drawn = tuple(env for env in envs if any(e == env for e, _ in exported)) if envs else with_runs
+            present.append((name, figure, experiments, labels, paper, drawn))
+    return present
 
 
 def ablation_summary(args: Args, figure: str, experiments: tuple, labels: tuple, paper: str, envs: tuple) -> str:

@@ -390,8 +390,9 @@ def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
 
 
 def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
-    """An ablation's figure and summary section appear once a variant's runs are exported, with its scores;
-    Fig. 2 keeps drawing standard Cascade and PPO only, though the ablation runs share the folder."""
+    """An ablation's figure and summary section appear once a variant's runs are exported, with its scores, on
+    Ant-v4 and Walker2d-v4 (Fig. 8: on the envs of its runs); Fig. 2 keeps drawing standard Cascade and PPO only,
+    though the ablation runs share the folder."""
     import json
 
     from plots import reproduce
@@ -419,6 +420,11 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
                 product["values"] = [v * 1.5 for v in product["values"]]
                 scores["product0.9"] = product["values"][-3:]
             json.dump(run, open(runs / f"{run['name']}.json", "w"))
+        if (exp, seed) == ("cascade", "1"):  # a Fig. 8 run (`--preset tiny`) on Hopper-v4, an env of no other ablation
+            run = json.loads(json.dumps(data))
+            run["hparams"]["exp_name"] = "cascade_tiny_k1M"
+            run["name"] = run["name"].replace("__cascade__", "__cascade_tiny_k1M__")
+            json.dump(run, open(runs / f"{run['name']}.json", "w"))
     paths = reproduce.main(reproduce.Args(runs=str(runs), out=str(tmp_path / "out"), reps=100))
     names = {os.path.basename(p) for p in paths}
     assert {"fig4_frozen.png", "fig11_fallback_init.png", "fig6_fig7_fallback_init_product.png",
@@ -433,6 +439,8 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
     row = next(line for line in section.splitlines() if line.startswith("| Ant-v4 |"))
     assert f"{np.mean(scores['cascade']):.0f} ± " in row and f"{scores['cascade_frozen'][0]:.0f} (seeds 1)" in row, row
     assert "severely worsens" in section
+    tiny = summary[summary.index("## Fig. 8"):]
+    assert "| Hopper-v4 |" in tiny and "| Ant-v4 |" not in tiny and "fig8_tiny.png" in names, tiny
     fig2 = next(line for line in summary.splitlines() if line.startswith("| Ant-v4 |"))  # Fig. 2's table comes first
     assert f"{np.mean(scores['cascade']):.0f} ± " in fig2 and "(n=2)" in fig2, fig2
     curves = open(tmp_path / "out" / "fig2_learning_curves.csv").read()
