@@ -59,7 +59,7 @@ class Args:
     seed: int = 1
     """seed of the experiment (python, numpy, torch and the environments)"""
     torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
     """torch CPU threads; 1: these nets are too small for a second thread to pay (README, speed of SAC and DDPG)"""
     cuda: bool = False

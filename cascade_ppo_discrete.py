@@ -65,7 +65,7 @@ class Args:
     seed: int = 1
     """seed of the experiment (python, numpy, torch and the environments)"""
     torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
     """torch CPU threads; 1 is fastest for these small nets"""
     cuda: bool = False
@@ -127,7 +127,7 @@ class Args:
     norm_adv: bool = True
     """normalize advantages per minibatch"""
     clip_coef: float = 0.2
-    """surrogate clipping coefficient"""
+    """clip range of the surrogate objective (PPO's epsilon) and, with --clip-vloss, of the value loss"""
     clip_vloss: bool = True
     """use a clipped value loss"""
     ent_coef: float = 0.01

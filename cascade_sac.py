@@ -55,7 +55,7 @@ class Args:
     seed: int = 1
     """seed of the experiment (python, numpy, torch and the environments)"""
     torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
     """torch CPU threads; 1: a second one sped the 256-wide SAC baseline up by only ~1.15x in wall-clock for ~1.5x the CPU time (README, speed of SAC and DDPG), so two runs side by side finish sooner than one run on two threads"""
     cuda: bool = False

@@ -65,7 +65,7 @@ class Args:
     seed: int = 1
     """seed of the experiment (python, numpy, torch and the environments)"""
     torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
     """torch CPU threads; 1 is fastest for these small nets"""
     cuda: bool = False
@@ -119,7 +119,7 @@ class Args:
     norm_adv: bool = True
     """normalize advantages per minibatch"""
     clip_coef: float = 0.2
-    """surrogate clipping coefficient"""
+    """clip range of the surrogate objective (PPO's epsilon) and, with --clip-vloss, of the value loss"""
     clip_vloss: bool = True
     """use a clipped value loss"""
     ent_coef: float = 0.0
@@ -262,8 +262,16 @@ def autograd_gradients(actor: Actor, critic: TanhMLP, params: list[nn.Parameter]
 
 
 def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
-    """PPO's Adam (eps 1e-5); the fused kernel updates all parameters at once, ~3x faster on CPU."""
+    """PPO's Adam (eps 1e-5); the fused kernel updates all parameters at once, ~3x faster on CPU.
+    Any other optimizer works too: the fast path calls the fused Adam kernel directly only for this exact
+    Adam and checks its step against `optimizer_step` below."""
     return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
+
+
+def optimizer_step(params: nn.Parameter, optimizer: torch.optim.Optimizer, args: Args) -> None:
+    """One step on the gradients in .grad: the global gradient-norm clip, then the optimizer (CleanRL)."""
+    nn.utils.clip_grad_norm_([params], args.max_grad_norm)
+    optimizer.step()
 
 
 def compute_gae(rewards: np.ndarray, dones: np.ndarray, values: np.ndarray, next_value: np.ndarray,
@@ -336,8 +344,9 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
         # --- rollout: the weights do not change during it; values and log-probs are computed for the
         # whole batch afterwards ---
-        policy = fast.acting_function(act, actor, np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]]),
-                                      global_step, args.num_steps)  # `act`, or its checked numpy twin
+        # `act`, or its numpy twin once it draws what `act` draws on the next observation and 8 of the last rollout's
+        check_obs = np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]])
+        policy = fast.acting_function(act, actor, check_obs, global_step, args.num_steps)
         for step in range(args.num_steps):
             global_step += args.num_envs
             obs[step] = next_obs
@@ -366,18 +375,16 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         # one [B, D] tensor holding all a minibatch needs, so each minibatch is a single gather
         batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
                            b_values[:, None]], dim=1)
-        fast.check_gradients(autograd_gradients, actor, critic, unpack(batch[:minibatch_size]), args, global_step)
         ratios = []  # of every minibatch, for the clip fraction
         for _epoch in range(args.update_epochs):
             b_inds = torch.randperm(batch_size, device=device)
             for start in range(0, batch_size, minibatch_size):
                 minibatch = unpack(torch.index_select(batch, 0, b_inds[start : start + minibatch_size]))
-                if fast.gradients:  # section 2: the same step with hand-written gradients (checked above)
+                if fast.gradients:  # section 2: the same step by hand, checked against the two lines below
                     loss, parts = fast.update(actor, critic, params, optimizer, minibatch, args, global_step)
                 if not fast.gradients:  # the definition (also right after the fast path switched itself off)
                     loss, parts = autograd_gradients(actor, critic, all_params, minibatch, args)
-                    nn.utils.clip_grad_norm_([params], args.max_grad_norm)
-                    optimizer.step()
+                    optimizer_step(params, optimizer, args)
                 ratios.append(parts["ratio"])
 
             # CleanRL's diagnostics, from the epoch's last minibatch
@@ -454,12 +461,14 @@ def record_video(actor: Actor, stats, env_id: str, path: str, deterministic: boo
 # ==============================================================================================
 # Acting runs a numpy copy of the mean net and samples the Gaussian in numpy; the update writes its
 # gradients by hand. Neither is a definition: at every rollout start `act` above (the forward and
-# `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the first minibatch
-# of every update `autograd_gradients` above and the hand-written gradients are compared, in float64.
-# An edit of section 1 that the fast paths do not reproduce, or that makes them raise, switches them off
-# with one warning line, and the run continues exactly as --autograd runs it.
+# `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the first and the last
+# minibatch of every update `autograd_gradients` above (loss, parts, gradients) and `optimizer_step` are
+# compared with the hand-written update, in float64. An edit of section 1 that the fast paths do not
+# reproduce, or that makes them raise, switches them off with one warning line, and the run continues
+# exactly as --autograd runs it.
 def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    return FastPaths(not args.autograd, numpy_mlp_policy, mlp_ppo_gradients, None if run is None else run.fast_path_off)
+    return FastPaths(not args.autograd, numpy_mlp_policy, mlp_ppo_gradients, None if run is None else run.fast_path_off,
+                     definition=(autograd_gradients, optimizer_step))
 
 
 # ==============================================================================================

@@ -8,11 +8,18 @@ parameter buffer stepped by the fused Adam kernel.
 Nothing here is a definition. `FastPaths` checks each path against the script's own section 1 while the
 run trains, in float64 so that rounding (~1e-15) and a real difference (an edit: >= 1e-7) are far apart:
 - acting, at every rollout start: the script's `act(actor, obs)` (its forward and its `sample_action`)
-  against the numpy forward plus the numpy Gaussian sampler, both drawing from the same seeded torch RNG;
-- the update, on the first minibatch of every update: the script's `autograd_gradients` (the loss and its
-  gradient by autograd, whatever the script computes there) against the hand-written loss and gradients.
+  against the numpy forward plus the numpy Gaussian sampler, both drawing from the same torch RNG state
+  (a new seed every rollout, 256 rows at least, so that an edit of the noise's tails shows);
+- the update, on every minibatch of the first update with each new optimizer (each Cascade iteration's first),
+  then on the first minibatch of every update (before any step: the ratios are 1) and on its last one (after
+  all the others: the ratios and values have moved, so that the clipping matters): the script's
+  `autograd_gradients` (the loss, its parts and its gradient by autograd, whatever the script computes there)
+  against the hand-written loss, parts and gradients, and the script's `optimizer_step` (the clip and the
+  optimizer it made) against the fast step, on copies of the optimizer, with those gradients and with them
+  scaled up 1000 times (so that the norm clip acts).
 A path that disagrees, or raises, is switched off for the rest of the run with one warning line, and the
-run continues through section 1, exactly as `--autograd` runs.
+run continues through section 1, exactly as `--autograd` runs. A non-finite loss or gradient of section 1 on
+a checked minibatch switches the gradients off too, so that the run's non-finite guard sees section 1's.
 """
 
 from __future__ import annotations
@@ -62,14 +69,26 @@ def adam_step(optimizer: torch.optim.Adam) -> None:
     group = optimizer.param_groups[0]
     (param,) = group["params"]
     state = optimizer.state.get(param)
-    if not state:  # the first step creates the state
-        optimizer.step()
+    if not state or not plain_fused_adam(optimizer):  # the first step creates the state; AdamW, amsgrad & co.
+        # outside inference mode (FastPaths.update runs in it): a state created there could not be stepped by
+        # section 1's optimizer_step, should the fast path switch itself off later
+        with torch.inference_mode(False):
+            optimizer.step()
         return
     state["step"] += 1  # as step() does before the kernel
     beta1, beta2 = group["betas"]
     torch._fused_adam_([param], [param.grad], [state["exp_avg"]], [state["exp_avg_sq"]], [], [state["step"]],
                        amsgrad=False, lr=group["lr"], beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"],
                        eps=group["eps"], maximize=False)
+
+
+def plain_fused_adam(optimizer: torch.optim.Optimizer) -> bool:
+    """Is `optimizer` exactly what the direct kernel call in `adam_step` computes: torch's Adam itself (not a
+    subclass such as AdamW), fused, without amsgrad, maximize or decoupled weight decay?"""
+    group = optimizer.param_groups[0]
+    return (type(optimizer) is torch.optim.Adam and len(optimizer.param_groups) == 1 and group["fused"]
+            and not (group["amsgrad"] or group["maximize"] or group["capturable"] or group["differentiable"]
+                     or group.get("decoupled_weight_decay", False)))
 
 
 def fast_optimizer_step(flat: nn.Parameter, optimizer: torch.optim.Adam, max_norm: float) -> None:
@@ -83,13 +102,22 @@ def fast_optimizer_step(flat: nn.Parameter, optimizer: torch.optim.Adam, max_nor
 # Cascade"); the smallest edit tried (0.01 * mean.pow(2).mean() added to the loss) differs by ~2e-7 at the
 # first update, when the means are still ~0.01, and by more as they grow.
 FAST_PATH_TOLERANCE = 1e-9
+# The parts of the loss (policy and value loss, entropy, ratios) are compared relative to at least this: they
+# are built from O(1) numbers (normalized advantages, ratios near 1), and some are near zero by cancellation.
+PARTS_SCALE = 1e-2
+GRADIENT_FLOOR = 1e-3
 
 
-def relative_error(fast: list[torch.Tensor], reference: list[torch.Tensor]) -> float:
+def relative_error(fast: list[torch.Tensor], reference: list[torch.Tensor], floor: float = 1e-30) -> float:
+    """max |fast - reference| / the larger of max |reference| and max |fast| (so a zero reference against a
+    non-zero value reads 1, all wrong, not 1e27), and of `floor`: for values that are sums of cancelling O(1)
+    terms (the policy loss of normalized advantages at ratio 1 is ~1e-17), their rounding is ~1e-16 absolute."""
     fast_flat = torch.cat([t.reshape(-1) for t in fast])
     reference_flat = torch.cat([t.reshape(-1) for t in reference])
-    scale = max(reference_flat.abs().max().item() if len(reference_flat) else 0.0, 1e-30)
-    return (fast_flat - reference_flat).abs().max().item() / scale if len(reference_flat) else 0.0
+    if not len(reference_flat):
+        return 0.0
+    scale = max(reference_flat.abs().max().item(), fast_flat.abs().max().item(), floor)
+    return (fast_flat - reference_flat).abs().max().item() / scale
 
 
 def float64_copy(module: nn.Module) -> nn.Module:
@@ -165,6 +193,14 @@ tanh_backward = torch.ops.aten.tanh_backward
 
 def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
     return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
+
+
+def with_entropy(parts: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The hand-written update's parts as section 1 names them: it skips the entropy (only logged, with the
+    default --ent-coef 0) and keeps the log-std instead, so the entropy is computed here when it is wanted."""
+    if "entropy" in parts or "log_std" not in parts:
+        return parts
+    return {**parts, "entropy": gaussian_entropy(parts["log_std"]).mean()}
 
 
 def ppo_loss_gradients(
@@ -404,24 +440,50 @@ def bulk_draws_match(shape: tuple, dtype: np.dtype) -> bool:
     return _bulk_checked[key]
 
 
-CHECK_SEED = 12345  # the acting check draws its noise from a forked RNG seeded with this: training's stream is untouched
+CHECK_SEED = 12345  # + the step: the acting check's noise, from a forked RNG (training's stream is untouched)
+CHECK_ROWS = 256  # the acting check's observations are repeated to at least this many rows: ~770 noise draws
+CHECK_GRADIENT_SCALES = (1.0, 1e3)  # the optimizer check steps with section 1's gradients, then 1000 times them
+
+
+def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, torch.optim.Optimizer]:
+    """A float64 copy of an optimizer over one parameter (the flat buffer), with its state and settings; the
+    copy's parameter (its .grad zeroed) is returned with it. Another structure raises: the fast step needs it."""
+    twin = copy.deepcopy(optimizer)
+    params = [p for group in twin.param_groups for p in group["params"]]
+    if len(params) != 1:
+        raise ValueError(f"an optimizer over {len(params)} parameters; the fast step updates one flat buffer")
+    (old,) = params
+    param = nn.Parameter(old.detach().double())
+    param.grad = torch.zeros_like(param)
+    twin.param_groups[0]["params"] = [param]
+    state = twin.state.pop(old, None)
+    if state:
+        twin.state[param] = {key: value.double() if key != "step" and torch.is_tensor(value)
+                             and value.is_floating_point() else value for key, value in state.items()}
+    return param, twin
 
 
 class FastPaths:
     """Which fast paths are on, and their run-time checks against the script's section 1 (float64 copies).
 
     `numpy_policy(actor)` gives obs -> (mean, log-std) in numpy; `fast_gradients(actor, critic, minibatch, args)`
-    writes the hand-written gradients into every .grad and returns (loss, parts). A check that fails, or any
+    writes the hand-written gradients into every .grad and returns (loss, parts); `definition` is section 1's
+    `(autograd_gradients, optimizer_step)`, what `update` is checked against. A check that fails, or any
     exception inside a fast path, turns that path off for the rest of the run: one line through `announce`."""
 
     def __init__(self, enabled: bool, numpy_policy: Callable, fast_gradients: Callable,
-                 announce: Callable[[str, int], None] | None = None):
+                 announce: Callable[[str, int], None] | None = None,
+                 definition: tuple[Callable, Callable] | None = None):
         self.acting = self.gradients = enabled
         self.numpy_policy, self.fast_gradients, self.announce = numpy_policy, fast_gradients, announce
-        self.worst = {"acting": 0.0, "gradients": 0.0}  # largest disagreement seen by the checks that passed
+        self.definition = definition
+        # the largest disagreement seen by the checks that passed
+        self.worst = {"acting": 0.0, "gradients": 0.0, "parts": 0.0, "optimizer": 0.0}
         self.check_seconds = 0.0
         self.messages: list[str] = []
         self._twin: tuple = (None, None, None)  # (actor, fingerprint of its weights, float64 copy)
+        self._minibatch = (None, 0, False)  # (the update's global_step, its minibatch, check all?): when to check
+        self._fully_checked: torch.optim.Optimizer | None = None  # the optimizer whose first update was checked
 
     def float64_actor(self, actor: nn.Module) -> nn.Module:
         """A float64 copy of `actor`, reused while its weights are unchanged (the acting check at a rollout's
@@ -435,7 +497,8 @@ class FastPaths:
     def acting_function(self, act: Callable[[nn.Module, np.ndarray], np.ndarray], actor: nn.Module,
                         check_obs: np.ndarray, step: int, calls: int = 0) -> Callable[[np.ndarray], np.ndarray]:
         """The rollout's obs -> actions: the numpy path if it draws what the script's `act(actor, obs)` draws
-        from the same RNG state on `check_obs`, else `act` itself. `calls`: the rollout's steps, if known."""
+        from the same RNG state on `check_obs` (repeated to CHECK_ROWS rows), else `act` itself. `calls`: the
+        rollout's steps, if known."""
         definition = functools.partial(act, actor)
         if not self.acting:
             return definition
@@ -443,10 +506,11 @@ class FastPaths:
         try:
             twin = self.float64_actor(actor)
             obs = np.asarray(check_obs, dtype=np.float64)
+            obs = np.tile(obs, (-(-CHECK_ROWS // max(len(obs), 1)), 1))
             with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(CHECK_SEED)
+                torch.manual_seed(CHECK_SEED + step)
                 reference = torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64)
-                torch.manual_seed(CHECK_SEED)
+                torch.manual_seed(CHECK_SEED + step)
                 fast = torch.as_tensor(numpy_gaussian_sampler(self.numpy_policy(twin))(obs), dtype=torch.float64)
             if fast.shape != reference.shape:
                 raise ValueError(f"actions of shape {tuple(fast.shape)} instead of {tuple(reference.shape)}")
@@ -475,12 +539,12 @@ class FastPaths:
 
         return guarded
 
-    def check_gradients(self, autograd_gradients: Callable, actor: nn.Module, critic: nn.Module, minibatch: tuple,
-                        args: Any, step: int) -> None:
-        """Compare the hand-written loss and gradients with the script's `autograd_gradients` (what --autograd
-        runs) on one minibatch, both on the same float64 copies."""
-        if not self.gradients:
-            return
+    def check_update(self, actor: nn.Module, critic: nn.Module, optimizer: torch.optim.Optimizer, minibatch: tuple,
+                     args: Any, step: int) -> None:
+        """Compare the hand-written loss, parts and gradients with section 1's `autograd_gradients` (what
+        --autograd runs) on one minibatch, on the same float64 copies; then the fast optimizer step with section
+        1's `optimizer_step`, on float64 copies of `optimizer`, with those gradients."""
+        autograd_gradients, optimizer_step = self.definition
         start = time.perf_counter()
         try:
             actor64, critic64 = self.float64_actor(actor), float64_copy(critic)
@@ -488,37 +552,99 @@ class FastPaths:
             names += [f"critic.{n}" for n, _ in critic64.named_parameters()]
             params = [*actor64.parameters(), *critic64.parameters()]
             minibatch = tuple(t.detach().double() for t in minibatch)
-            reference_loss, _ = autograd_gradients(actor64, critic64, params, minibatch, args)
+            reference_loss, reference_parts = autograd_gradients(actor64, critic64, params, minibatch, args)
             reference = [p.grad.clone() for p in params]
             with torch.no_grad():
-                fast_loss, _ = self.fast_gradients(actor64, critic64, minibatch, args)
+                fast_loss, fast_parts = self.fast_gradients(actor64, critic64, minibatch, args)
+                fast_parts = with_entropy(fast_parts)
             fast = [p.grad for p in params]
+            if not math.isfinite(reference_loss.item()) or not all(torch.isfinite(g).all() for g in reference):
+                self.switch_off("gradients", "autograd_gradients gives a non-finite loss or gradient (the run's "
+                                "non-finite guard judges section 1's values from here on)", step)
+                return
+            what = self.disagreement(names, reference_loss, reference_parts, reference, fast_loss, fast_parts, fast)
+            if what is None:
+                what = self.optimizer_disagreement(optimizer_step, optimizer, reference, args)
         except Exception as exc:
-            self.switch_off("gradients", f"the hand-written gradients fail on these nets ({describe(exc)})", step)
+            self.switch_off("gradients", f"the hand-written update fails on these nets ({describe(exc)})", step)
             return
         finally:
             self.check_seconds += time.perf_counter() - start
-        if not math.isfinite(reference_loss.item()) or not all(torch.isfinite(g).all() for g in reference):
-            return  # non-finite values are the non-finite guard's business
+        if what is not None:
+            self.switch_off("gradients", what, step)
+
+    def disagreement(self, names: list[str], reference_loss: torch.Tensor, reference_parts: dict,
+                     reference: list[torch.Tensor], fast_loss: torch.Tensor, fast_parts: dict,
+                     fast: list[torch.Tensor]) -> str | None:
+        """What the hand-written update computes differently from autograd_gradients (None: nothing)."""
         error = relative_error([fast_loss.reshape(1)], [reference_loss.reshape(1)])
         if not error <= FAST_PATH_TOLERANCE:
-            self.switch_off("gradients", f"the hand-written update computes another loss than autograd_gradients "
-                            f"(relative error {error:.1e})", step)
-            return
-        worst = error
-        for name, f, r in zip(names, fast, reference):
-            error = relative_error([f], [r])
+            return f"the hand-written update computes another loss than autograd_gradients (relative error {error:.1e})"
+        worst, worst_part = error, 0.0
+        for key, value in reference_parts.items():  # what the run logs and stops early on
+            if key not in fast_parts:
+                return f"autograd_gradients returns a part '{key}' that the hand-written update does not compute"
+            error = relative_error([torch.as_tensor(fast_parts[key]).double()], [torch.as_tensor(value).double()],
+                                   floor=PARTS_SCALE)
             if not error <= FAST_PATH_TOLERANCE:
-                self.switch_off("gradients", f"the hand-written gradient of {name} differs from autograd_gradients "
-                                f"(max relative error {error:.1e})", step)
-                return
+                return f"the hand-written update computes another '{key}' than autograd_gradients " \
+                       f"(max relative error {error:.1e})"
+            worst_part = max(worst_part, error)
+        # a parameter's gradient can be near zero by cancellation (a fallback bias: a sum over the batch): each is
+        # compared relative to at least GRADIENT_FLOOR times the largest gradient of all, the scale of its rounding
+        floor = GRADIENT_FLOOR * max((r.abs().max().item() for r in reference if r.numel()), default=0.0)
+        for name, f, r in zip(names, fast, reference):
+            error = relative_error([f], [r], floor=max(floor, 1e-30))
+            if not error <= FAST_PATH_TOLERANCE:
+                return f"the hand-written gradient of {name} differs from autograd_gradients " \
+                       f"(max relative error {error:.1e})"
             worst = max(worst, error)
         self.worst["gradients"] = max(self.worst["gradients"], worst)
+        self.worst["parts"] = max(self.worst["parts"], worst_part)
+        return None
+
+    def optimizer_disagreement(self, optimizer_step: Callable, optimizer: torch.optim.Optimizer,
+                               gradients: list[torch.Tensor], args: Any) -> str | None:
+        """Does the fast step (clip, Adam kernel) move the parameters as section 1's `optimizer_step` does?"""
+        flat_gradient = torch.cat([g.reshape(-1) for g in gradients])
+        for scale in CHECK_GRADIENT_SCALES:
+            moves = []
+            for step_function in (optimizer_step, None):
+                param, twin = float64_optimizer(optimizer)
+                before = param.detach().clone()
+                if param.shape != flat_gradient.shape:
+                    raise ValueError(f"an optimizer over {param.numel()} numbers, not the nets' {flat_gradient.numel()}")
+                param.grad.copy_(flat_gradient * scale)
+                if step_function is None:
+                    fast_optimizer_step(param, twin, args.max_grad_norm)
+                else:
+                    step_function(param, twin, args)
+                moves.append(param.detach() - before)
+            error = relative_error([moves[1]], [moves[0]])
+            if not error <= FAST_PATH_TOLERANCE:
+                return f"the fast optimizer step (clip, fused Adam) moves the parameters otherwise than " \
+                       f"optimizer_step (max relative error {error:.1e})"
+            self.worst["optimizer"] = max(self.worst["optimizer"], error)
+        return None
 
     def update(self, actor: nn.Module, critic: nn.Module, flat: nn.Parameter, optimizer: torch.optim.Adam,
                minibatch: tuple, args: Any, step: int) -> tuple[torch.Tensor | None, dict | None]:
-        """One minibatch step with the hand-written gradients (clipped, fused Adam); (None, None) if it raised,
-        after switching itself off (the caller then runs section 1's step)."""
+        """One minibatch step with the hand-written gradients (clipped, fused Adam); (None, None) if it raised or
+        a check failed, after switching itself off (the caller then runs section 1's step). Checked first
+        (`check_update`): every minibatch of the first update with each new optimizer (each Cascade iteration's
+        first, a resumed run's first), then the first and the last minibatch of every update (`step` tells the
+        updates apart)."""
+        update_step, index, every = self._minibatch
+        if update_step == step:
+            index += 1
+        else:
+            index, every = 0, optimizer is not self._fully_checked
+            self._fully_checked = optimizer
+        self._minibatch = (step, index, every)
+        if (every or index in (0, args.update_epochs * args.num_minibatches - 1)) and self.definition is not None:
+            self.check_update(actor, critic, optimizer, minibatch, args, step)
+            if not self.gradients:
+                return None, None
         try:
             with torch.inference_mode():  # no autograd bookkeeping at all
                 loss, parts = self.fast_gradients(actor, critic, minibatch, args)

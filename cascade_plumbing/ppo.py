@@ -15,7 +15,7 @@ import torch.nn as nn
 from . import envs as envs_module
 from .envs import OBS_CLIP, check_env_id
 from .errors import fail
-from .fast import gaussian_entropy
+from .fast import with_entropy
 
 
 def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0, video: bool = False) -> Callable[[], gym.Env]:
@@ -86,8 +86,7 @@ def log_ppo_update(writer: Any, global_step: int, optimizer: torch.optim.Optimiz
     write("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
     write("losses/value_loss", parts["value_loss"].item(), global_step)
     write("losses/policy_loss", parts["policy_loss"].item(), global_step)
-    entropy = parts["entropy"] if "entropy" in parts else gaussian_entropy(parts["log_std"]).mean()
-    write("losses/entropy", entropy.item(), global_step)
+    write("losses/entropy", with_entropy(parts)["entropy"].item(), global_step)
     write("losses/old_approx_kl", old_approx_kl.item(), global_step)
     write("losses/approx_kl", approx_kl.item(), global_step)
     write("losses/clipfrac", ((ratios - 1.0).abs() > clip_coef).float().mean().item(), global_step)

@@ -14,7 +14,7 @@ import torch
 import cascade_plumbing.fast as fast_paths
 import cascade_ppo_continuous as cpc
 import ppo_baseline as pb
-from helpers import ROOT
+from helpers import ROOT, only_run_dir, read_scalars
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2, eval_every=0, checkpoint_every=0, quiet=True)
 
@@ -43,6 +43,10 @@ def test_unmodified_script_keeps_its_fast_paths(module, budget, tmp_path):
     assert fast.acting and fast.gradients and fast.messages == []
     assert 0 < fast.worst["gradients"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
     assert fast.worst["acting"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
+    # the loss's parts (relative to at least PARTS_SCALE) and the optimizer step, checked on the first and last
+    # minibatch of every update
+    assert 0 < fast.worst["parts"] < fast_paths.FAST_PATH_TOLERANCE * 1e-2, fast.worst
+    assert fast.worst["optimizer"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
 
 
 @pytest.mark.parametrize("module,budget", [(cpc, dict(n=2, k=1024)), (cpc, dict(n=2, k=1024, freeze_previous=True)),
@@ -84,6 +88,21 @@ EDITS = {
                           "        dims = [2 * obs_dim] + [hidden_size] * num_layers"),
                          ("        dims = [self.obs_dim] + [self.hidden_size] * self.num_layers",
                           "        dims = [2 * self.obs_dim] + [self.hidden_size] * self.num_layers")],
+    # found by a review (2026-12-03): edits that only matter once the policy has moved, or outside the gradient
+    "policy clip range": [("torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)",
+                           "torch.clamp(ratio, 1 - 0.001, 1 + 0.001)")],
+    "value clip range": [("torch.clamp(value - old_value, -args.clip_coef, args.clip_coef)",
+                          "torch.clamp(value - old_value, -0.001, 0.001)")],
+    "kl penalty": [("loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef",
+                          "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef"
+                          " + 0.1 * ((ratio - 1) - logratio).mean()")],
+    "adamw": [("return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)",
+               "return torch.optim.AdamW(params, lr=learning_rate, eps=1e-5, weight_decay=0.1, fused=True)")],
+    "no gradient clip": [("    nn.utils.clip_grad_norm_([params], args.max_grad_norm)\n", "")],
+    "truncated noise": [("return action_distribution(mean, log_std).sample()",
+                         "return mean + log_std.exp() * torch.randn_like(mean).clamp(-2.5, 2.5)")],
+    # logged only (--ent-coef 0): the logged entropy must be section 1's
+    "entropy per dimension": [("entropy_loss = dist.entropy().sum(1).mean()", "entropy_loss = dist.entropy().mean()")],
 }
 CASES = [  # script, edit, the parts the warnings must name (in order)
     ("cascade_ppo_continuous.py", "loss term", ["computes another loss than autograd_gradients"]),
@@ -98,7 +117,17 @@ CASES = [  # script, edit, the parts the warnings must name (in order)
     ("ppo_baseline.py", "objective term", ["computes another loss than autograd_gradients"]),
     ("ppo_baseline.py", "laplace policy", ["draws other actions than act()",
                                            "computes another loss than autograd_gradients"]),
+    *[(script, edit, expected) for script in ("cascade_ppo_continuous.py", "ppo_baseline.py") for edit, expected in [
+        ("policy clip range", ["computes another loss than autograd_gradients"]),
+        ("value clip range", ["computes another loss than autograd_gradients"]),
+        ("kl penalty", ["autograd_gradients"]),
+        ("adamw", []),  # the fast path steps any optimizer but torch's plain fused Adam with its step()
+        ("no gradient clip", ["moves the parameters otherwise than optimizer_step"]),
+        ("truncated noise", ["draws other actions than act()"]),
+        ("entropy per dimension", ["computes another 'entropy' than autograd_gradients"]),
+    ]],
 ]
+LOGGED_ONLY = {"entropy per dimension": "losses/entropy"}  # edits that change a logged value, not the parameters
 
 
 TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
@@ -125,6 +154,10 @@ def train_copy(module, script, track_dir, **extra):
     result = module.train(module.Args(**TINY_ARGS, **BUDGET_ARGS[script], track_dir=str(track_dir), **extra))
     (run_dir,) = os.listdir(track_dir)
     return final_parameters(os.path.join(track_dir, run_dir)), result["fast_paths"].messages
+
+
+def logged(track_dir, tag):
+    return [value for _, value in read_scalars(only_run_dir(track_dir))[tag]]
 
 
 @pytest.fixture(scope="module")
@@ -157,9 +190,18 @@ def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, un
     edited, _ = train_copy(module, script, tmp_path / "autograd", autograd=True)
     # the edit takes effect exactly as autograd computes it (up to float rounding)...
     assert_close_parameters(switched_params, edited, 1e-4)
+    if edit in LOGGED_ONLY:  # the run logs what section 1 computes (the unedited script logs something else)
+        tag = LOGGED_ONLY[edit]
+        fast_log, autograd_log = logged(tmp_path / "fast", tag), logged(tmp_path / "autograd", tag)
+        torch.testing.assert_close(torch.tensor(fast_log), torch.tensor(autograd_log), rtol=1e-4, atol=1e-5)
+        unedited_log = logged(tmp_path / "unedited", tag) if (tmp_path / "unedited").exists() else None
+        if unedited_log is None:
+            train_copy(importlib.import_module(script[:-3]), script, tmp_path / "unedited")
+            unedited_log = logged(tmp_path / "unedited", tag)
+        assert abs(fast_log[-1] - unedited_log[-1]) > 1e-3 * abs(unedited_log[-1]), (fast_log, unedited_log)
     # ...and it does change the result: by far more than that rounding (the first loss term's effect is small
     # at first, since the means start at ~0.01; a shape change is a change by construction)
-    if edit != "squared features":
+    elif edit != "squared features":
         rounding = max((switched_params[k] - edited[k]).abs().max().item() for k in edited)
         effect = max((edited[k] - unedited[script][k]).abs().max().item() for k in edited)
         assert effect > max(10 * rounding, 1e-6), (effect, rounding)
@@ -201,3 +243,49 @@ def test_a_copy_elsewhere_runs_once_the_package_is_installed(tmp_path):
     help_text = subprocess.run([sys.executable, str(tmp_path / "mine.py"), "--help"], capture_output=True, text=True,
                                cwd=tmp_path, timeout=120, env=env)
     assert help_text.returncode == 0 and "--autograd" in help_text.stdout
+
+
+def edited_copy(script, edits, folder):
+    source = open(os.path.join(ROOT, script)).read()
+    for old, new in edits:
+        assert source.count(old) == 1, f"the edit's line is not in {script} exactly once: {old}"
+        source = source.replace(old, new)
+    copy = folder / script
+    copy.write_text(source)
+    return import_copy(str(copy))
+
+
+def test_a_non_finite_loss_of_section_1_stops_the_run_as_autograd_would(tmp_path, capsys):
+    """A term that is NaN in section 1 (the mean of the empty fallback tensor of a one-net stack) must stop the run
+    with the non-finite guard's line, as --autograd does, not train on with the hand-written (finite) loss."""
+    module = edited_copy("cascade_ppo_continuous.py", [(
+        "        grads = torch.autograd.grad(loss, params, allow_unused=True)",
+        "        loss = loss + 0.01 * actor(obs)[2].mean()\n"
+        "        grads = torch.autograd.grad(loss, params, allow_unused=True)")], tmp_path)
+    for autograd in (False, True):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as stopped:
+            train_copy(module, "cascade_ppo_continuous.py", tmp_path / f"runs_{autograd}", autograd=autograd)
+        assert "the loss became non-finite at global_step=256 (iteration 1, update 1)" in str(stopped.value), \
+            stopped.value
+        warnings = [line for line in capsys.readouterr().err.splitlines() if "fast path check" in line]
+        assert warnings == ([] if autograd else [warnings[0]])
+        assert autograd or "autograd_gradients gives a non-finite loss or gradient" in warnings[0]
+
+
+@pytest.mark.parametrize("script", ["cascade_ppo_continuous.py", "ppo_baseline.py"])
+def test_a_new_part_of_the_loss_can_be_logged(script, tmp_path):
+    """A diagnostic added to ppo_loss's parts and logged in the loop (here CleanRL's k3 estimate of the KL) is
+    logged as section 1 computes it: the hand-written update does not compute it, so the check hands the run
+    to autograd_gradients before the loop reads it."""
+    module = edited_copy(script, [
+        ('"ratio": ratio}', '"ratio": ratio, "k3": ((ratio - 1) - logratio).mean()}'),
+        ("run.update_done(global_step, optimizer, parts,",  # one line, whatever the loop's indentation
+         'run.writer.add_scalar("losses/k3", parts["k3"].item(), global_step); '
+         "run.update_done(global_step, optimizer, parts,")], tmp_path)
+    _, messages = train_copy(module, script, tmp_path / "fast")
+    assert len(messages) == 1 and "returns a part 'k3'" in messages[0], messages
+    train_copy(module, script, tmp_path / "autograd", autograd=True)
+    fast_log, autograd_log = logged(tmp_path / "fast", "losses/k3"), logged(tmp_path / "autograd", "losses/k3")
+    assert len(fast_log) >= 4 and all(value > 0 for value in fast_log)  # every update; the KL estimate is positive
+    torch.testing.assert_close(torch.tensor(fast_log), torch.tensor(autograd_log), rtol=1e-3, atol=1e-9)
