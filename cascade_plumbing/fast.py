@@ -11,12 +11,12 @@ run trains, in float64 so that rounding (~1e-15) and a real difference (an edit:
   against the numpy forward plus the numpy Gaussian sampler, both drawing from the same torch RNG state
   (a new seed every rollout, 256 rows at least, so that an edit of the noise's tails shows);
 - the update, on every minibatch of the first update with each new optimizer (each Cascade iteration's first),
-  then on the first minibatch of every update (before any step: the ratios are 1) and on its last one (after
-  all the others: the ratios and values have moved, so that the clipping matters): the script's
+  then on the last minibatch of every update (after all the others: the ratios and values have moved, so that
+  the clipping matters): the script's
   `autograd_gradients` (the loss, its parts and its gradient by autograd, whatever the script computes there)
   against the hand-written loss, parts and gradients, and the script's `optimizer_step` (the clip and the
-  optimizer it made) against the fast step, on copies of the optimizer, with those gradients and with them
-  scaled up 1000 times (so that the norm clip acts).
+  optimizer it made) against the fast step, on copies of the optimizer and its state, with those gradients
+  and with them scaled up 1000 times (so that the norm clip acts).
 A path that disagrees, or raises, is switched off for the rest of the run with one warning line, and the
 run continues through section 1, exactly as `--autograd` runs. A non-finite loss or gradient of section 1 on
 a checked minibatch switches the gradients off too, so that the run's non-finite guard sees section 1's.
@@ -24,6 +24,7 @@ a checked minibatch switches the gradients off too, so that the run's non-finite
 
 from __future__ import annotations
 
+import collections
 import copy
 import functools
 import math
@@ -446,20 +447,21 @@ CHECK_GRADIENT_SCALES = (1.0, 1e3)  # the optimizer check steps with section 1's
 
 
 def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, torch.optim.Optimizer]:
-    """A float64 copy of an optimizer over one parameter (the flat buffer), with its state and settings; the
-    copy's parameter (its .grad zeroed) is returned with it. Another structure raises: the fast step needs it."""
-    twin = copy.deepcopy(optimizer)
-    params = [p for group in twin.param_groups for p in group["params"]]
+    """A float64 copy of an optimizer over one parameter (the flat buffer), with its settings and a copy of its
+    state (the step counts too: the original's stay as they are); the copy's parameter (its .grad zeroed) is
+    returned with it. Another structure raises: the fast step needs one flat buffer."""
+    params = [p for group in optimizer.param_groups for p in group["params"]]
     if len(params) != 1:
         raise ValueError(f"an optimizer over {len(params)} parameters; the fast step updates one flat buffer")
-    (old,) = params
-    param = nn.Parameter(old.detach().double())
+    param = nn.Parameter(params[0].detach().double())
     param.grad = torch.zeros_like(param)
-    twin.param_groups[0]["params"] = [param]
-    state = twin.state.pop(old, None)
-    if state:
-        twin.state[param] = {key: value.double() if key != "step" and torch.is_tensor(value)
-                             and value.is_floating_point() else value for key, value in state.items()}
+    twin = copy.copy(optimizer)  # its class and settings; the groups and the state are the copy's own below
+    twin.param_groups = [{**optimizer.param_groups[0], "params": [param]}]
+    twin.state = collections.defaultdict(dict)
+    for key, value in optimizer.state.get(params[0], {}).items():
+        if torch.is_tensor(value):
+            value = value.double() if key != "step" and value.is_floating_point() else value.clone()
+        twin.state[param][key] = copy.deepcopy(value)
     return param, twin
 
 
@@ -542,8 +544,8 @@ class FastPaths:
     def check_update(self, actor: nn.Module, critic: nn.Module, optimizer: torch.optim.Optimizer, minibatch: tuple,
                      args: Any, step: int) -> None:
         """Compare the hand-written loss, parts and gradients with section 1's `autograd_gradients` (what
-        --autograd runs) on one minibatch, on the same float64 copies; then the fast optimizer step with section
-        1's `optimizer_step`, on float64 copies of `optimizer`, with those gradients."""
+        --autograd runs) on one minibatch, on the same float64 copies; then the fast optimizer
+        step with section 1's `optimizer_step`, on float64 copies of `optimizer`, with those gradients."""
         autograd_gradients, optimizer_step = self.definition
         start = time.perf_counter()
         try:
@@ -592,13 +594,18 @@ class FastPaths:
             worst_part = max(worst_part, error)
         # a parameter's gradient can be near zero by cancellation (a fallback bias: a sum over the batch): each is
         # compared relative to at least GRADIENT_FLOOR times the largest gradient of all, the scale of its rounding
-        floor = GRADIENT_FLOOR * max((r.abs().max().item() for r in reference if r.numel()), default=0.0)
-        for name, f, r in zip(names, fast, reference):
-            error = relative_error([f], [r], floor=max(floor, 1e-30))
-            if not error <= FAST_PATH_TOLERANCE:
-                return f"the hand-written gradient of {name} differs from autograd_gradients " \
-                       f"(max relative error {error:.1e})"
-            worst = max(worst, error)
+        kept = [(name, f, r) for name, f, r in zip(names, fast, reference) if r.numel()]
+        if kept:
+            names, fast, reference = zip(*kept)
+            largest = torch.stack(torch._foreach_norm(reference, float("inf")))
+            scale = torch.maximum(torch.maximum(largest, torch.stack(torch._foreach_norm(fast, float("inf")))),
+                                  GRADIENT_FLOOR * largest.max()).clamp(min=1e-30)
+            errors = (torch.stack(torch._foreach_norm(torch._foreach_sub(fast, reference), float("inf"))) / scale)
+            for name, error in zip(names, errors.tolist()):
+                if not error <= FAST_PATH_TOLERANCE:
+                    return f"the hand-written gradient of {name} differs from autograd_gradients " \
+                           f"(max relative error {error:.1e})"
+                worst = max(worst, error)
         self.worst["gradients"] = max(self.worst["gradients"], worst)
         self.worst["parts"] = max(self.worst["parts"], worst_part)
         return None
@@ -632,8 +639,7 @@ class FastPaths:
         """One minibatch step with the hand-written gradients (clipped, fused Adam); (None, None) if it raised or
         a check failed, after switching itself off (the caller then runs section 1's step). Checked first
         (`check_update`): every minibatch of the first update with each new optimizer (each Cascade iteration's
-        first, a resumed run's first), then the first and the last minibatch of every update (`step` tells the
-        updates apart)."""
+        first, a resumed run's first), then the last minibatch of every update (`step` tells the updates apart)."""
         update_step, index, every = self._minibatch
         if update_step == step:
             index += 1
@@ -641,7 +647,8 @@ class FastPaths:
             index, every = 0, optimizer is not self._fully_checked
             self._fully_checked = optimizer
         self._minibatch = (step, index, every)
-        if (every or index in (0, args.update_epochs * args.num_minibatches - 1)) and self.definition is not None:
+        last = index == args.update_epochs * args.num_minibatches - 1
+        if (every or last) and self.definition is not None:
             self.check_update(actor, critic, optimizer, minibatch, args, step)
             if not self.gradients:
                 return None, None
