@@ -24,24 +24,25 @@ from .checkpoints import non_finite_advice
 from .envs import check_env_id
 from .errors import fail
 from .evaluation import EvaluationEnvs
+from .fast import plain_fused_adam
 from .record import RunRecord
 from .replay import ReplayBuffer, available_memory, buffer_capacity, store_transition
 from .tracking import log_new_videos
 
 
 def minimize(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
-    """`optimizer.zero_grad(); loss.backward(); optimizer.step()` for an optimizer over one parameter group, with
-    less overhead, still plain autograd: torch.autograd.grad computes the gradients of exactly the optimizer's
-    parameters (no other weight gradient, e.g. none of the critics' in the actor loss), and they go straight into
-    the fused Adam kernel that step() ends in (step() spends longer grouping and checking than the kernel takes).
-    Any other optimizer, and Adam's first step (it creates the state), take the plain path; the optimizer's state,
-    and so the checkpoints, are as step() leaves them (tests/test_sac_ddpg_updates.py checks it bit for bit)."""
+    """`optimizer.zero_grad(); loss.backward(); optimizer.step()`, with less overhead, still plain autograd:
+    torch.autograd.grad computes the gradients of exactly the optimizer's parameters (no other weight gradient,
+    e.g. none of the critics' in the actor loss), and they go straight into the fused Adam kernel that step() ends
+    in (step() spends longer grouping and checking than the kernel takes). Any other optimizer (AdamW, amsgrad,
+    several parameter groups...), and Adam's first step (it creates the state), take the plain path; the
+    optimizer's state, and so the checkpoints, are as step() leaves them (tests/test_sac_ddpg_updates.py checks
+    it bit for bit)."""
     group = optimizer.param_groups[0]
-    params = group["params"]
+    params = [param for each in optimizer.param_groups for param in each["params"]]  # every group's (a hacker's)
     grads = list(torch.autograd.grad(loss, params, materialize_grads=True))
     states = [optimizer.state.get(p) for p in params]
-    if (isinstance(optimizer, torch.optim.Adam) and group["fused"] and all(states) and not group["amsgrad"]
-            and not group["maximize"] and not group["decoupled_weight_decay"]):
+    if all(states) and plain_fused_adam(optimizer):  # not AdamW, amsgrad, a subclass of Adam...: their step()
         steps = [state["step"] for state in states]
         torch._foreach_add_(steps, 1)  # as step() does before the kernel
         beta1, beta2 = group["betas"]

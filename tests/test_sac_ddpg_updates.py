@@ -246,3 +246,29 @@ def test_minimize_is_adam_step_bit_for_bit(script):
         for key in ("step", "exp_avg", "exp_avg_sq"):
             assert torch.equal(state[key], ref_state[key]), key
     assert len(plain_steps) == 1  # only the first step (it creates the state) goes through step()
+
+
+OTHER_OPTIMIZERS = {  # what a hacker may put in make_adam: each must step exactly as zero_grad/backward/step
+    "adamw": lambda params: torch.optim.AdamW(params, lr=1e-2, weight_decay=0.1, fused=True),
+    "amsgrad": lambda params: torch.optim.Adam(params, lr=1e-2, amsgrad=True, fused=True),
+    "two groups": lambda params: torch.optim.Adam([{"params": params[:2]}, {"params": params[2:], "lr": 1e-3}],
+                                                  lr=1e-2, fused=True),
+}
+
+
+@pytest.mark.parametrize("make", OTHER_OPTIMIZERS.values(), ids=OTHER_OPTIMIZERS.keys())
+def test_minimize_steps_any_other_optimizer_as_its_step_would(make):
+    """The direct kernel call is only for torch's plain fused Adam over one group: AdamW's decoupled decay,
+    amsgrad and a second parameter group (with its own learning rate) must not be dropped."""
+    torch.manual_seed(0)
+    qf = cs.QNetworks(OBS_DIM, ACT_DIM, hidden_size=8)
+    reference = copy.deepcopy(qf)
+    optimizer, ref_optimizer = make(list(qf.parameters())), make(list(reference.parameters()))
+    obs, actions, rewards, _, _ = fixed_batch()
+    for step in range(4):
+        cs.minimize(optimizer, ((qf(obs, actions) - rewards) ** 2).mean())
+        ref_optimizer.zero_grad()
+        ((reference(obs, actions) - rewards) ** 2).mean().backward()
+        ref_optimizer.step()
+        for p, q in zip(qf.parameters(), reference.parameters()):
+            assert torch.equal(p, q), f"step {step}"
