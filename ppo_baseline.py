@@ -461,9 +461,9 @@ def record_video(actor: Actor, stats, env_id: str, path: str, deterministic: boo
 # ==============================================================================================
 # Acting runs a numpy copy of the mean net and samples the Gaussian in numpy; the update writes its
 # gradients by hand. Neither is a definition: at every rollout start `act` above (the forward and
-# `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the first and the last
-# minibatch of every update `autograd_gradients` above (loss, parts, gradients) and `optimizer_step` are
-# compared with the hand-written update, in float64. An edit of section 1 that the fast paths do not
+# `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the last minibatch of
+# every update (every minibatch of an iteration's first) `autograd_gradients` above (loss, parts, gradients)
+# and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the fast paths do not
 # reproduce, or that makes them raise, switches them off with one warning line, and the run continues
 # exactly as --autograd runs it.
 def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:

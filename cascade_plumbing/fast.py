@@ -25,11 +25,13 @@ a checked minibatch switches the gradients off too, so that the run's non-finite
 from __future__ import annotations
 
 import collections
+import contextlib
 import copy
 import functools
 import math
+import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -465,6 +467,19 @@ def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, t
     return param, twin
 
 
+@contextlib.contextmanager
+def untouched_random_streams() -> Iterator[None]:
+    """Whatever runs inside draws from torch's, numpy's and Python's global random streams without moving them: a
+    check calls section 1 once more than an --autograd run does, and must not shift the run's random numbers."""
+    numpy_state, python_state = np.random.get_state(), random.getstate()
+    with torch.random.fork_rng(devices=[]):
+        try:
+            yield
+        finally:
+            np.random.set_state(numpy_state)
+            random.setstate(python_state)
+
+
 class FastPaths:
     """Which fast paths are on, and their run-time checks against the script's section 1 (float64 copies).
 
@@ -509,9 +524,15 @@ class FastPaths:
             twin = self.float64_actor(actor)
             obs = np.asarray(check_obs, dtype=np.float64)
             obs = np.tile(obs, (-(-CHECK_ROWS // max(len(obs), 1)), 1))
-            with torch.random.fork_rng(devices=[]):
+            with untouched_random_streams():
                 torch.manual_seed(CHECK_SEED + step)
-                reference = torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64)
+                try:
+                    reference = torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64)
+                except Exception as exc:
+                    self.switch_off("acting", f"act() raised on the check's float64 copy of the actor ({describe(exc)});"
+                                    " the check needs act to keep the observation's dtype (torch.as_tensor(obs), not"
+                                    " torch.Tensor(obs))", step)
+                    return definition
                 torch.manual_seed(CHECK_SEED + step)
                 fast = torch.as_tensor(numpy_gaussian_sampler(self.numpy_policy(twin))(obs), dtype=torch.float64)
             if fast.shape != reference.shape:
@@ -554,11 +575,12 @@ class FastPaths:
             names += [f"critic.{n}" for n, _ in critic64.named_parameters()]
             params = [*actor64.parameters(), *critic64.parameters()]
             minibatch = tuple(t.detach().double() for t in minibatch)
-            reference_loss, reference_parts = autograd_gradients(actor64, critic64, params, minibatch, args)
-            reference = [p.grad.clone() for p in params]
-            with torch.no_grad():
-                fast_loss, fast_parts = self.fast_gradients(actor64, critic64, minibatch, args)
-                fast_parts = with_entropy(fast_parts)
+            with untouched_random_streams():  # an edit may draw random numbers: not from training's streams
+                reference_loss, reference_parts = autograd_gradients(actor64, critic64, params, minibatch, args)
+                reference = [p.grad.clone() for p in params]
+                with torch.no_grad():
+                    fast_loss, fast_parts = self.fast_gradients(actor64, critic64, minibatch, args)
+                    fast_parts = with_entropy(fast_parts)
             fast = [p.grad for p in params]
             if not math.isfinite(reference_loss.item()) or not all(torch.isfinite(g).all() for g in reference):
                 self.switch_off("gradients", "autograd_gradients gives a non-finite loss or gradient (the run's "
@@ -566,7 +588,8 @@ class FastPaths:
                 return
             what = self.disagreement(names, reference_loss, reference_parts, reference, fast_loss, fast_parts, fast)
             if what is None:
-                what = self.optimizer_disagreement(optimizer_step, optimizer, reference, args)
+                with untouched_random_streams():
+                    what = self.optimizer_disagreement(optimizer_step, optimizer, reference, args)
         except Exception as exc:
             self.switch_off("gradients", f"the hand-written update fails on these nets ({describe(exc)})", step)
             return
@@ -639,16 +662,22 @@ class FastPaths:
         """One minibatch step with the hand-written gradients (clipped, fused Adam); (None, None) if it raised or
         a check failed, after switching itself off (the caller then runs section 1's step). Checked first
         (`check_update`): every minibatch of the first update with each new optimizer (each Cascade iteration's
-        first, a resumed run's first), then the last minibatch of every update (`step` tells the updates apart)."""
+        first, a resumed run's first), then the last minibatch of every update (`step` tells the updates apart;
+        the last is --update-epochs x --num-minibatches: an update that stops before it, by --target-kl or an edit
+        of the loop, has the next update's first minibatch checked instead)."""
         update_step, index, every = self._minibatch
+        expected_last = args.update_epochs * args.num_minibatches - 1
         if update_step == step:
             index += 1
-        else:
+            check = every or index == expected_last
+        else:  # a new update; if the one before stopped before its last minibatch (--target-kl, a loop edit), it
+            # went unchecked: this first minibatch is checked instead
+            check = update_step is not None and index < expected_last
             index, every = 0, optimizer is not self._fully_checked
             self._fully_checked = optimizer
+            check = check or every
         self._minibatch = (step, index, every)
-        last = index == args.update_epochs * args.num_minibatches - 1
-        if (every or last) and self.definition is not None:
+        if check and self.definition is not None:
             self.check_update(actor, critic, optimizer, minibatch, args, step)
             if not self.gradients:
                 return None, None

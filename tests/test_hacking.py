@@ -101,6 +101,12 @@ EDITS = {
     "no gradient clip": [("    nn.utils.clip_grad_norm_([params], args.max_grad_norm)\n", "")],
     "truncated noise": [("return action_distribution(mean, log_std).sample()",
                          "return mean + log_std.exp() * torch.randn_like(mean).clamp(-2.5, 2.5)")],
+    # a second review (2026-12-03): an edit that draws random numbers; CleanRL's float32 conversion in `act`
+    "noisy observations in the loss": [("        mean, log_std, _, _ = actor(obs)\n",
+                                        "        obs = obs + 0.01 * torch.randn_like(obs)\n"
+                                        "        mean, log_std, _, _ = actor(obs)\n")],
+    "float32 observations in act": [("actor(torch.as_tensor(obs, device=actor.log_std.device))",
+                                     "actor(torch.Tensor(obs).to(actor.log_std.device))")],
     # logged only (--ent-coef 0): the logged entropy must be section 1's
     "entropy per dimension": [("entropy_loss = dist.entropy().sum(1).mean()", "entropy_loss = dist.entropy().mean()")],
 }
@@ -128,6 +134,12 @@ CASES = [  # script, edit, the parts the warnings must name (in order)
     ]],
 ]
 LOGGED_ONLY = {"entropy per dimension": "losses/entropy"}  # edits that change a logged value, not the parameters
+CASES += [
+    ("cascade_ppo_continuous.py", "noisy observations in the loss", ["autograd_gradients"]),
+    # no change of the math: the numpy path is switched off, saying why, and the run is act()'s
+    ("cascade_ppo_continuous.py", "float32 observations in act", ["needs act to keep the observation's dtype"]),
+]
+NO_EFFECT = {"squared features", "float32 observations in act"}  # nothing to compare with the unedited result
 
 
 TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
@@ -201,7 +213,7 @@ def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, un
         assert abs(fast_log[-1] - unedited_log[-1]) > 1e-3 * abs(unedited_log[-1]), (fast_log, unedited_log)
     # ...and it does change the result: by far more than that rounding (the first loss term's effect is small
     # at first, since the means start at ~0.01; a shape change is a change by construction)
-    elif edit != "squared features":
+    elif edit not in NO_EFFECT:
         rounding = max((switched_params[k] - edited[k]).abs().max().item() for k in edited)
         effect = max((edited[k] - unedited[script][k]).abs().max().item() for k in edited)
         assert effect > max(10 * rounding, 1e-6), (effect, rounding)
@@ -289,3 +301,17 @@ def test_a_new_part_of_the_loss_can_be_logged(script, tmp_path):
     fast_log, autograd_log = logged(tmp_path / "fast", "losses/k3"), logged(tmp_path / "autograd", "losses/k3")
     assert len(fast_log) >= 4 and all(value > 0 for value in fast_log)  # every update; the KL estimate is positive
     torch.testing.assert_close(torch.tensor(fast_log), torch.tensor(autograd_log), rtol=1e-3, atol=1e-9)
+
+
+def test_an_update_stopped_early_is_checked_all_the_same(tmp_path, monkeypatch):
+    """With --target-kl every update stops after its first epoch, before the minibatch the late check waits for:
+    the next update's first minibatch is checked instead, so no update but the run's last goes unchecked."""
+    checked = []
+    check = fast_paths.FastPaths.check_update
+    monkeypatch.setattr(fast_paths.FastPaths, "check_update",
+                        lambda self, *a: checked.append(a[-1]) or check(self, *a))
+    result = cpc.train(cpc.Args(**TINY_ARGS, n=1, k=2048, target_kl=1e-12, track_dir=str(tmp_path)))
+    assert result["fast_paths"].messages == []
+    updates = list(range(256, 2049, 256))  # global_step of each update
+    assert sorted(set(checked)) == updates  # each update's (early) end is checked at the next update's start...
+    assert checked.count(256) == 4  # ...and the first update, on its 4 minibatches (one epoch): all of them
