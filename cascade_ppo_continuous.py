@@ -685,12 +685,12 @@ def record_video(actor: CascadeActor, stats, env_id: str, path: str, determinist
 # gradients by hand. Neither is a definition: at every rollout start `act` above (the forward and
 # `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the last minibatch of
 # every update (every minibatch of an iteration's first) `autograd_gradients` above (loss, parts, gradients)
-# and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the fast paths do not
-# reproduce, or that makes them raise, switches them off with one warning line, and the run continues
-# exactly as --autograd runs it.
+# and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
+# fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
+# continues exactly as --autograd runs it.
 def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    return FastPaths(not args.autograd, numpy_cascade_policy, cascade_ppo_gradients, None if run is None else run.fast_path_off,
-                     definition=(autograd_gradients, optimizer_step))
+    return FastPaths(not args.autograd, numpy_cascade_policy, cascade_ppo_gradients,
+                     None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
 
 
 # ==============================================================================================

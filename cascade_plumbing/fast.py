@@ -461,9 +461,13 @@ def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, t
     twin.param_groups = [{**optimizer.param_groups[0], "params": [param]}]
     twin.state = collections.defaultdict(dict)
     for key, value in optimizer.state.get(params[0], {}).items():
-        if torch.is_tensor(value):
-            value = value.double() if key != "step" and value.is_floating_point() else value.clone()
-        twin.state[param][key] = copy.deepcopy(value)
+        if not torch.is_tensor(value):
+            value = copy.deepcopy(value)
+        elif key != "step" and value.is_floating_point():
+            value = value.double()
+        else:
+            value = value.clone()
+        twin.state[param][key] = value
     return param, twin
 
 
@@ -580,15 +584,14 @@ class FastPaths:
                 reference = [p.grad.clone() for p in params]
                 with torch.no_grad():
                     fast_loss, fast_parts = self.fast_gradients(actor64, critic64, minibatch, args)
-                    fast_parts = with_entropy(fast_parts)
-            fast = [p.grad for p in params]
-            if not math.isfinite(reference_loss.item()) or not all(torch.isfinite(g).all() for g in reference):
-                self.switch_off("gradients", "autograd_gradients gives a non-finite loss or gradient (the run's "
-                                "non-finite guard judges section 1's values from here on)", step)
-                return
-            what = self.disagreement(names, reference_loss, reference_parts, reference, fast_loss, fast_parts, fast)
-            if what is None:
-                with untouched_random_streams():
+                fast = [p.grad for p in params]
+                if not math.isfinite(reference_loss.item()) or not all(torch.isfinite(g).all() for g in reference):
+                    self.switch_off("gradients", "autograd_gradients gives a non-finite loss or gradient (the run's "
+                                    "non-finite guard judges section 1's values from here on)", step)
+                    return
+                what = self.disagreement(names, reference_loss, reference_parts, reference, fast_loss,
+                                         with_entropy(fast_parts), fast)
+                if what is None:
                     what = self.optimizer_disagreement(optimizer_step, optimizer, reference, args)
         except Exception as exc:
             self.switch_off("gradients", f"the hand-written update fails on these nets ({describe(exc)})", step)
@@ -637,13 +640,14 @@ class FastPaths:
                                gradients: list[torch.Tensor], args: Any) -> str | None:
         """Does the fast step (clip, Adam kernel) move the parameters as section 1's `optimizer_step` does?"""
         flat_gradient = torch.cat([g.reshape(-1) for g in gradients])
+        optimized = sum(p.numel() for group in optimizer.param_groups for p in group["params"])
+        if optimized != flat_gradient.numel():
+            raise ValueError(f"an optimizer over {optimized} numbers, not the nets' {flat_gradient.numel()}")
         for scale in CHECK_GRADIENT_SCALES:
             moves = []
             for step_function in (optimizer_step, None):
                 param, twin = float64_optimizer(optimizer)
                 before = param.detach().clone()
-                if param.shape != flat_gradient.shape:
-                    raise ValueError(f"an optimizer over {param.numel()} numbers, not the nets' {flat_gradient.numel()}")
                 param.grad.copy_(flat_gradient * scale)
                 if step_function is None:
                     fast_optimizer_step(param, twin, args.max_grad_norm)
@@ -672,10 +676,10 @@ class FastPaths:
             check = every or index == expected_last
         else:  # a new update; if the one before stopped before its last minibatch (--target-kl, a loop edit), it
             # went unchecked: this first minibatch is checked instead
-            check = update_step is not None and index < expected_last
+            stopped_early = update_step is not None and index < expected_last
             index, every = 0, optimizer is not self._fully_checked
             self._fully_checked = optimizer
-            check = check or every
+            check = every or stopped_early
         self._minibatch = (step, index, every)
         if check and self.definition is not None:
             self.check_update(actor, critic, optimizer, minibatch, args, step)

@@ -221,6 +221,17 @@ def test_ddpg_update_matches_reference(n, policy_frequency):
 # ----------------------------------------------------------------------------------------------
 # The scripts' `minimize`: the fused Adam kernel called directly, as optimizer.step() would
 # ----------------------------------------------------------------------------------------------
+def minimize_and_step_alike(script, qf, optimizer, reference, ref_optimizer, step):
+    """One script.minimize on qf and one zero_grad/backward/step on its copy, on the fixed batch: the same weights."""
+    obs, actions, rewards, _, _ = fixed_batch()
+    script.minimize(optimizer, ((qf(obs, actions) - rewards) ** 2).mean())
+    ref_optimizer.zero_grad()
+    ((reference(obs, actions) - rewards) ** 2).mean().backward()
+    ref_optimizer.step()
+    for p, q in zip(qf.parameters(), reference.parameters()):
+        assert torch.equal(p, q), f"step {step}"
+
+
 @pytest.mark.parametrize("script", [cs, cd], ids=["sac", "ddpg"])
 def test_minimize_is_adam_step_bit_for_bit(script):
     """minimize(optimizer, loss) moves the parameters and leaves the optimizer's state (what a checkpoint saves)
@@ -232,16 +243,10 @@ def test_minimize_is_adam_step_bit_for_bit(script):
     optimizer, ref_optimizer = make(list(qf.parameters())), make(list(reference.parameters()))
     plain_steps = []
     optimizer.step = lambda *a, step=optimizer.step: plain_steps.append(1) or step(*a)
-    obs, actions, rewards, _, _ = fixed_batch()
     for step in range(4):
         for opt in (optimizer, ref_optimizer):
             opt.param_groups[0]["lr"] = 1e-2 / (step + 1)
-        script.minimize(optimizer, ((qf(obs, actions) - rewards) ** 2).mean())
-        ref_optimizer.zero_grad()
-        ((reference(obs, actions) - rewards) ** 2).mean().backward()
-        ref_optimizer.step()
-        for p, q in zip(qf.parameters(), reference.parameters()):
-            assert torch.equal(p, q), f"step {step}"
+        minimize_and_step_alike(script, qf, optimizer, reference, ref_optimizer, step)
     for state, ref_state in zip(optimizer.state_dict()["state"].values(), ref_optimizer.state_dict()["state"].values()):
         for key in ("step", "exp_avg", "exp_avg_sq"):
             assert torch.equal(state[key], ref_state[key]), key
@@ -264,11 +269,5 @@ def test_minimize_steps_any_other_optimizer_as_its_step_would(make):
     qf = cs.QNetworks(OBS_DIM, ACT_DIM, hidden_size=8)
     reference = copy.deepcopy(qf)
     optimizer, ref_optimizer = make(list(qf.parameters())), make(list(reference.parameters()))
-    obs, actions, rewards, _, _ = fixed_batch()
     for step in range(4):
-        cs.minimize(optimizer, ((qf(obs, actions) - rewards) ** 2).mean())
-        ref_optimizer.zero_grad()
-        ((reference(obs, actions) - rewards) ** 2).mean().backward()
-        ref_optimizer.step()
-        for p, q in zip(qf.parameters(), reference.parameters()):
-            assert torch.equal(p, q), f"step {step}"
+        minimize_and_step_alike(cs, qf, optimizer, reference, ref_optimizer, step)
