@@ -5,9 +5,30 @@ import signal
 import subprocess
 import sys
 
+import torch
+from filelock import FileLock
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def built_once(tmp_path_factory, name, build):
+    """`build(folder)`'s result, built once per pytest session even under pytest-xdist: the first worker builds it
+    in a folder all workers share (this session's temp folder) and saves it; the others wait, then load it. The
+    tests must only read that folder."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        return build(tmp_path_factory.mktemp(name))
+    shared = tmp_path_factory.getbasetemp().parent  # pytest-<n>/ of this session, above each worker's popen-gw<i>
+    with FileLock(str(shared / f"{name}.lock")):
+        saved = shared / f"{name}.pt"
+        if saved.exists():
+            return torch.load(saved, weights_only=False)
+        folder = shared / name
+        shutil.rmtree(folder, ignore_errors=True)  # what a worker that failed building it left
+        folder.mkdir()
+        result = build(folder)
+        torch.save(result, saved)
+        return result
 
 
 def run_script(script, *args, timeout=600, env=None):

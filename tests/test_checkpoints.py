@@ -292,7 +292,7 @@ def test_stopping_a_run_is_one_line(script, extra, signum, tmp_path):
     env_id = "CartPole-v1" if "discrete" in script else "Pendulum-v1" if "sac" in script else "Hopper-v4"
     flags = ["--env-id", env_id, *extra, "--eval-every", "1000", "--eval-episodes", "2", "--track-dir", str(tmp_path)]
     if "sac" not in script:
-        flags += ["--checkpoint-every", "2048"]
+        flags += ["--checkpoint-every", "2048", "--num-minibatches", "4", "--update-epochs", "2"]  # (a quick update)
     proc = subprocess.Popen([sys.executable, os.path.join(ROOT, script), *flags], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=ROOT, start_new_session=True, preexec_fn=ctrl_c_reaches_child)
     deadline = time.time() + 120

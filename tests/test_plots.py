@@ -12,7 +12,7 @@ import torch
 
 import cascade_ppo_continuous as cpc
 import ppo_baseline
-from helpers import ROOT, read_scalars
+from helpers import ROOT, built_once, read_scalars
 from plots import analyze, common, fallback, final_performance, learning_curves, members
 
 TINY = dict(env_id="Hopper-v4", num_steps=256, num_minibatches=4, update_epochs=2, eval_every=512, eval_episodes=2,
@@ -22,8 +22,13 @@ SEEDS = (1, 2)
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    """2 seeds of Cascade (n=2, k=1024) and 2 seeds of PPO (2048 steps) on Hopper-v4, a few seconds each."""
-    track = str(tmp_path_factory.mktemp("runs"))
+    """2 seeds of Cascade (n=2, k=1024) and 2 seeds of PPO (2048 steps) on Hopper-v4, a few seconds each (made by
+    one xdist worker, read by all)."""
+    return built_once(tmp_path_factory, "plots_runs", make_runs)
+
+
+def make_runs(folder):
+    track = str(folder)
     cascade, baseline, second_net = [], [], {}
 
     def capture(state):
