@@ -84,11 +84,18 @@ def interval_estimate(scores: np.ndarray | tuple[np.ndarray, np.ndarray], statis
                       args: Args, call: int) -> tuple[float, tuple[float, float]]:
     """rliable's point estimate and stratified percentile-bootstrap CI of `statistic` on a runs x envs score matrix
     (or a pair of them, for a comparison). `call` numbers the estimates, so each has its own reproducible seed."""
-    with warnings.catch_warnings():  # arch (rliable's bootstrap) deprecates the RandomState rliable hands it
-        warnings.simplefilter("ignore", FutureWarning)
-        points, intervals = rly.get_interval_estimates(
-            {"x": scores}, lambda *m: np.array([statistic(*m)]), reps=args.reps,
-            confidence_interval_size=args.confidence, random_state=np.random.RandomState([args.seed, call]))
+    # rliable 1.2.0's stratified bootstraps draw their indices from numpy's global generator, whatever random_state
+    # says: seeded here (and restored after), or a figure's CIs would change with whatever ran before
+    global_state = np.random.get_state()
+    np.random.seed([args.seed, call])
+    try:
+        with warnings.catch_warnings():  # arch (rliable's bootstrap) deprecates the RandomState rliable hands it
+            warnings.simplefilter("ignore", FutureWarning)
+            points, intervals = rly.get_interval_estimates(
+                {"x": scores}, lambda *m: np.array([statistic(*m)]), reps=args.reps,
+                confidence_interval_size=args.confidence, random_state=np.random.RandomState([args.seed, call]))
+    finally:
+        np.random.set_state(global_state)
     return float(points["x"][0]), (float(intervals["x"][0, 0]), float(intervals["x"][1, 0]))
 
 

@@ -9,7 +9,7 @@ torch.set_num_threads(1)
 
 
 # The longest tests (>= ~30 s each on 2 busy cores; `--durations=60`, 2026-12-03), longest first. They are handed
-# out first and pyproject.toml sets xdist's --maxschedchunk 1 (one test at a time per worker), so that no long test
+# out first, and pytest-xdist hands out one test at a time (--maxschedchunk 1, below), so that no long test
 # starts last and leaves one worker alone at the end. Only tests without module-scoped fixtures (moving one away
 # from its module would build the fixture twice), but for test_plots' first test: its fixture is built once for
 # all workers (helpers.built_once), early, so that no worker waits for it later. A stale entry costs time, never
@@ -35,6 +35,11 @@ LONG_FIRST = (
     "test_tracking.py::test_capture_video_records_training_and_changes_nothing",
     "test_checkpoints.py::test_stopping_a_run_is_one_line",
 )
+
+
+def pytest_configure(config):
+    if getattr(config.option, "maxschedchunk", 0) is None:  # pytest-xdist's default: chunks of ~1/8 of the tests
+        config.option.maxschedchunk = 1
 
 
 def pytest_collection_modifyitems(config, items):

@@ -170,6 +170,21 @@ def test_rliable_estimates_match_the_numpy_reference(seeds):
     assert np.allclose((low, high), reference_ci(boot, 0.95), atol=0.08)
 
 
+def test_bootstrap_cis_do_not_depend_on_numpys_global_random_state():
+    """rliable draws its bootstrap indices from numpy's global generator: final_performance.py seeds it per
+    estimate, and leaves it as it was, so that a figure rebuilt from the same runs has the same CIs."""
+    x = np.random.default_rng(0).normal(size=(5, 2))
+    estimates = []
+    for global_seed in (0, 1):
+        np.random.seed(global_seed)
+        before = np.random.get_state()[1].copy()
+        estimates.append([final_performance.interval_estimate(scores, final_performance.metrics.aggregate_iqm,
+                                                              final_performance.Args(reps=200), 0)
+                          for scores in (x[:, :1], x)])
+        assert np.array_equal(np.random.get_state()[1], before)
+    assert estimates[0] == estimates[1]
+
+
 def test_final_performance_matches_logged_returns(runs, tmp_path):
     paths = final_performance.main(final_performance.Args(runs=(runs["track"],), out=str(tmp_path), reps=500))
     assert_figures(paths, "final_performance", "final_performance_improvement")
