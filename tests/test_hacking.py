@@ -27,13 +27,13 @@ def final_parameters(run_dir):
 def assert_close_parameters(a, b, tol):
     assert a.keys() == b.keys()
     for key in a:
-        torch.testing.assert_close(a[key], b[key], rtol=tol, atol=tol, msg=key)
+        torch.testing.assert_close(a[key], b[key], rtol=0.0, atol=tol, msg=key)
 
 
 FEWER_MINIBATCHES = dict(num_minibatches=8, update_epochs=4)  # 32 checks, not 320, in each fully checked update
 
 
-@pytest.mark.parametrize("module,budget", [(cpc, dict(n=3, k=4096)),
+@pytest.mark.parametrize("module,budget", [(cpc, dict(n=2, k=4096)),
                                            (cpc, dict(n=3, k=4096, fallback_init=0.999999, **FEWER_MINIBATCHES)),
                                            (cpc, dict(n=2, k=4096, freeze_previous=True, **FEWER_MINIBATCHES)),
                                            (pb, dict(total_timesteps=8192))])
@@ -146,7 +146,10 @@ NO_EFFECT = {"squared features", "float32 observations in act"}  # nothing to co
 
 
 TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
-BUDGET_ARGS = {"cascade_ppo_continuous.py": dict(n=2, k=1024), "ppo_baseline.py": dict(total_timesteps=1024)}
+# |switched run - its --autograd twin| allowed in each parameter: float rounding, measured at most 1.2e-7 after the
+# 4 updates of BUDGET_ARGS (2026-12-03), far below the smallest effect of an edit (~1.5e-5)
+ROUNDING = 2e-6
+BUDGET_ARGS = {"cascade_ppo_continuous.py": dict(n=2, k=512), "ppo_baseline.py": dict(total_timesteps=1024)}  # 4 updates each
 
 
 def import_copy(path):
@@ -209,7 +212,7 @@ def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, un
         assert part in line and "continuing by" in line, line
     edited, _ = train_copy(module, script, tmp_path / "autograd", autograd=True)
     # the edit takes effect exactly as autograd computes it (up to float rounding)...
-    assert_close_parameters(switched_params, edited, 1e-4)
+    assert_close_parameters(switched_params, edited, ROUNDING)
     if edit in LOGGED_ONLY:  # the run logs what section 1 computes (the unedited script logs something else)
         tag = LOGGED_ONLY[edit]
         fast_log, autograd_log = logged(tmp_path / "fast", tag), logged(tmp_path / "autograd", tag)
@@ -217,12 +220,13 @@ def test_an_edit_of_section_1_is_never_silently_wrong(script, edit, expected, un
         train_copy(importlib.import_module(script[:-3]), script, tmp_path / "unedited")
         unedited_log = logged(tmp_path / "unedited", tag)
         assert abs(fast_log[-1] - unedited_log[-1]) > 1e-3 * abs(unedited_log[-1]), (fast_log, unedited_log)
-    # ...and it does change the result: by far more than that rounding (the first loss term's effect is small
-    # at first, since the means start at ~0.01; a shape change is a change by construction)
+    # ...and it does change the result: by far more than that rounding, and by more than ROUNDING, so that a run
+    # that missed the edit (the unedited result) fails the comparison above (the smallest effects, ~1.5e-5, are
+    # the first loss term's and the KL penalty's, small at first; a shape change is a change by construction)
     elif edit not in NO_EFFECT:
         rounding = max((switched_params[k] - edited[k]).abs().max().item() for k in edited)
         effect = max((edited[k] - unedited[script][k]).abs().max().item() for k in edited)
-        assert effect > max(10 * rounding, 1e-6), (effect, rounding)
+        assert effect > max(10 * rounding, 3 * ROUNDING), (effect, rounding)
 
 
 COPY_FLAGS = ["--env-id", "InvertedPendulum-v4", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "1",
