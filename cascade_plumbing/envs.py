@@ -9,6 +9,7 @@ import os
 import pickle
 import signal
 import warnings
+import weakref
 from collections.abc import Callable
 
 import gymnasium as gym
@@ -234,7 +235,30 @@ def make_vector_env(env_fns: list[Callable[[], gym.Env]]) -> gym.vector.VectorEn
     mode = gym.vector.AutoresetMode.SAME_STEP
     if len(env_fns) == 1:
         return gym.vector.SyncVectorEnv(env_fns, autoreset_mode=mode)
-    return gym.vector.AsyncVectorEnv(env_fns, autoreset_mode=mode)
+    envs = gym.vector.AsyncVectorEnv(env_fns, autoreset_mode=mode)
+    WORKER_ENVS.add(envs)
+    return envs
+
+
+WORKER_ENVS: weakref.WeakSet = weakref.WeakSet()  # the open vector envs with worker processes
+
+
+def end_env_workers() -> None:
+    """After a stop (Ctrl-C, SIGTERM): terminate the --num-envs worker processes (SIGTERM, their default: they
+    end silently). The stop may have interrupted the training process in the middle of a worker's reply, and the
+    graceful close at exit would then fail on the half-read pipe, with tracebacks from both sides."""
+    for envs in list(WORKER_ENVS):
+        if envs.closed:
+            continue
+        for process in envs.processes:
+            if process.is_alive():
+                process.terminate()
+        for process in envs.processes:
+            process.join(timeout=10)
+        for pipe in envs.parent_pipes:
+            if pipe is not None:
+                pipe.close()
+        envs.closed = True  # nothing left for close() at exit
 
 
 def write_video(frames: list[np.ndarray], path: str, fps: int) -> None:

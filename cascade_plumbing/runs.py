@@ -20,6 +20,7 @@ import torch
 import tyro
 
 from .checkpoints import CHECKPOINT_NAME, repair_iteration_files
+from .envs import end_env_workers
 from .errors import fail
 from .tracking import check_wandb, finish_wandb
 
@@ -202,6 +203,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         FINISHING.clear()
         finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
         if isinstance(exc, KeyboardInterrupt):
+            end_env_workers()
             stopped(args, checkpoint, started)
         raise
     # The work is done and saved: a stop from here on must not turn a finished run into a failed one (at
