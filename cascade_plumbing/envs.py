@@ -246,7 +246,8 @@ WORKER_ENVS: weakref.WeakSet = weakref.WeakSet()  # the open vector envs with wo
 def end_env_workers() -> None:
     """After a stop (Ctrl-C, SIGTERM): terminate the --num-envs worker processes (SIGTERM, their default: they
     end silently). The stop may have interrupted the training process in the middle of a worker's reply, and the
-    graceful close at exit would then fail on the half-read pipe, with tracebacks from both sides."""
+    graceful close at exit would then fail on the half-read pipe, with tracebacks from both sides. (gymnasium's
+    close(terminate=True) would first warn and read the pending reply from that pipe.)"""
     for envs in list(WORKER_ENVS):
         if envs.closed:
             continue

@@ -4,6 +4,9 @@ import hashlib
 import os
 import shutil
 import signal
+import subprocess
+import sys
+import time
 
 import gymnasium as gym
 import numpy as np
@@ -238,8 +241,6 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
 @pytest.fixture
 def small_disk(tmp_path):
     """A real 2.6 MB tmpfs (room for about two checkpoints of a tiny run), where the machine lets us mount one."""
-    import subprocess
-
     disk = tmp_path / "disk"
     disk.mkdir()
     mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2600k", "tmpfs", str(disk)], capture_output=True,
@@ -285,10 +286,6 @@ def test_nan_guard_says_what_it_kept_and_what_to_change(poisoned_iteration, expe
 def test_stopping_a_run_is_one_line(script, extra, signum, tmp_path):
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) or SIGTERM: one line on where the
     last checkpoint is and how to resume, exit 130 / 143, no traceback from any process."""
-    import subprocess
-    import sys
-    import time
-
     env_id = "CartPole-v1" if "discrete" in script else "Pendulum-v1" if "sac" in script else "Hopper-v4"
     flags = ["--env-id", env_id, *extra, "--eval-every", "1000", "--eval-episodes", "2", "--track-dir", str(tmp_path)]
     if "sac" not in script:
@@ -312,9 +309,6 @@ def test_a_stop_ends_the_env_workers_quietly_even_mid_step():
     """A stop can interrupt the rollout while --num-envs workers are stepping (found when the test above stopped a
     run during its rollout: the graceful close at exit then failed on a half-read pipe, with ~80 lines of
     tracebacks from the workers). The stop path ends the workers first: nothing is printed, none is left."""
-    import subprocess
-    import sys
-
     code = """if True:
         import warnings
         import numpy as np
@@ -351,9 +345,6 @@ def test_resume_rebuilds_an_iteration_file_a_kill_left_truncated(finished_run, t
 def test_kill_9_during_the_iteration_copy_then_resume(tmp_path):
     """A real SIGKILL in the middle of writing iteration_1.pt (the process kills itself half way through the
     copy), then `--resume` as a user would: the iteration file is complete afterwards, no temp file is left."""
-    import subprocess
-    import sys
-
     driver = tmp_path / "driver.py"
     driver.write_text(f"""
 import os, shutil, signal, sys
