@@ -593,7 +593,15 @@ def evaluate_saved(args: Args) -> dict:
     return evaluate_saved_policy(args, load_checkpoint, policies, mode)
 
 
+def finished(args: Args, checkpoint: dict) -> bool:
+    """Whether `checkpoint` ends the run: all n iterations done (resuming it has nothing to do)."""
+    return checkpoint["iteration"] >= args.n
+
+
+def main() -> None:
+    """The command line: train, --resume a killed run, or --evaluate a saved model."""
+    run_main(Args, train, evaluate_saved, load_checkpoint, finished, description=__doc__.split("\n\n")[0])
+
+
 if __name__ == "__main__":
-    # train, --resume a killed run (one whose n iterations are all done has nothing to resume), or --evaluate
-    run_main(Args, train, evaluate_saved, load_checkpoint, finished=lambda args, checkpoint: checkpoint["iteration"] >= args.n,
-             description=__doc__.split("\n\n")[0])
+    main()

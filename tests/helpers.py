@@ -123,6 +123,15 @@ def run_in_process(script, *args):
     return 0, ""
 
 
+def cli_in_process(capsys, script, *args):
+    """`python <script> <args>` run in-process (`run_in_process`) with what it printed: (exit code, stdout, the
+    error message it stopped with, "" if none). For checks of what a command does and prints; the tests that need a
+    real interpreter (stderr, signals, the exit status, a fresh import) keep `run_script`."""
+    capsys.readouterr()  # what the test printed before is not the command's
+    code, message = run_in_process(script, *args)
+    return code, capsys.readouterr().out, message
+
+
 def error_line_in_process(script, *args):
     """The one-line `error: ...` a script stops with on bad input, run in-process (see `run_in_process`)."""
     code, message = run_in_process(script, *args)

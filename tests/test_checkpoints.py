@@ -18,6 +18,7 @@ import cascade_ppo_continuous as cpc
 from cascade_plumbing.envs import find_wrapper
 from helpers import (
     ROOT,
+    cli_in_process,
     copy_checkpoint_when,
     ctrl_c_reaches_child,
     error_line,
@@ -150,12 +151,12 @@ def test_member_evaluation_is_the_net_alone(finished_run):
     assert [s for s, _ in tags["members/return/net_2"]] == [2048]
 
 
-def test_evaluate_cli_with_members(finished_run):
-    proc = run_script("cascade_ppo_continuous.py", "--evaluate", finished_run["run_dir"], "--eval-episodes", "2",
-                      "--members", "--deterministic")
-    assert proc.returncode == 0, proc.stderr
-    assert "over 2 deterministic episodes" in proc.stdout
-    assert "net 1 alone" in proc.stdout and "net 2 alone" in proc.stdout
+def test_evaluate_cli_with_members(finished_run, capsys):
+    code, out, error = cli_in_process(capsys, "cascade_ppo_continuous.py", "--evaluate", finished_run["run_dir"],
+                                      "--eval-episodes", "2", "--members", "--deterministic")
+    assert code == 0, error
+    assert "over 2 deterministic episodes" in out
+    assert "net 1 alone" in out and "net 2 alone" in out
 
 
 def test_nan_guard_stops_and_keeps_last_good_checkpoint(tmp_path):
@@ -196,14 +197,15 @@ def test_resume_bad_input(finished_run, tmp_path):
     assert digest(run_dir) == before
 
 
-def test_progress_lines_when_not_a_terminal(tmp_path):
+def test_progress_lines_when_not_a_terminal(tmp_path, capsys):
     common = ["--env-id", "Hopper-v4", "--n", "1", "--k", "512", "--num-steps", "256", "--num-minibatches", "4",
               "--update-epochs", "1", "--eval-every", "0", "--track-dir", tmp_path]
-    loud = run_script("cascade_ppo_continuous.py", *common)
-    quiet = run_script("cascade_ppo_continuous.py", *common, "--quiet")
-    assert loud.returncode == quiet.returncode == 0
-    assert "SPS" in loud.stdout and "ETA" in loud.stdout and "\r" not in loud.stdout
-    assert "ETA" not in quiet.stdout
+    # captured stdout is not a terminal, as in a pipe or a log file
+    loud_code, loud, _ = cli_in_process(capsys, "cascade_ppo_continuous.py", *common)
+    quiet_code, quiet, _ = cli_in_process(capsys, "cascade_ppo_continuous.py", *common, "--quiet")
+    assert loud_code == quiet_code == 0
+    assert "SPS" in loud and "ETA" in loud and "\r" not in loud
+    assert "ETA" not in quiet
 
 
 def test_capture_video_writes_an_mp4_or_says_why(finished_run, tmp_path):
@@ -220,7 +222,7 @@ def test_capture_video_writes_an_mp4_or_says_why(finished_run, tmp_path):
     assert open(video, "rb").read(12)[4:8] == b"ftyp"  # an mp4 container
 
 
-def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
+def test_baseline_checkpoint_resume_and_evaluate(tmp_path, capsys):
     import ppo_baseline as pb
 
     base = dict(env_id="Hopper-v4", total_timesteps=2048, num_steps=256, num_minibatches=4, update_epochs=2,
@@ -231,11 +233,11 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
     resumed = resume_from(pb, tmp_path / "mid.pt", tmp_path / "b")
     for a, b in zip(full["actor"].parameters(), resumed["actor"].parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
-    proc = run_script("ppo_baseline.py", "--evaluate", full["run_dir"], "--eval-episodes", "2")
-    assert proc.returncode == 0 and "over 2 stochastic episodes" in proc.stdout, proc.stderr
+    code, out, error = cli_in_process(capsys, "ppo_baseline.py", "--evaluate", full["run_dir"], "--eval-episodes", "2")
+    assert code == 0 and "over 2 stochastic episodes" in out, error
     for extra, message in [(["--resume", full["run_dir"], "--hidden-size", "16"], "--hidden-size 16 differs"),
                            (["--evaluate", str(tmp_path / "missing")], "no checkpoint at")]:
-        assert message in error_line(run_script("ppo_baseline.py", *extra)), extra
+        assert message in error_line_in_process("ppo_baseline.py", *extra), extra
 
 
 @pytest.fixture

@@ -13,6 +13,7 @@ import cascade_ppo_discrete as cpd
 import learning_checks
 import ppo_baseline_discrete as pbd
 from helpers import (
+    cli_in_process,
     copy_checkpoint_when,
     error_line,
     error_line_in_process,
@@ -181,13 +182,13 @@ def test_each_iteration_gets_fresh_critic_and_optimizer(tmp_path, capsys):
     assert all(s["optimized"] == s["model_numel"] for s in seen)
 
 
-def test_cascade_discretized_hopper_run_writes_expected_scalars(tmp_path):
-    proc = run_script("cascade_ppo_discrete.py", "--env-id", "Hopper-v4", "--n", "3", "--k", "1024",
-                      "--update-epochs", "2", "--eval-every", "1024", "--eval-episodes", "2", "--normalize",
-                      "--track-dir", tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "8 discrete actions (discretized Box), normalization on" in proc.stdout
-    assert "15954 parameters" in proc.stdout  # two nets + critic, counted by hand above
+def test_cascade_discretized_hopper_run_writes_expected_scalars(tmp_path, capsys):
+    code, out, error = cli_in_process(capsys, "cascade_ppo_discrete.py", "--env-id", "Hopper-v4", "--n", "3", "--k",
+                                      "1024", "--update-epochs", "2", "--eval-every", "1024", "--eval-episodes", "2",
+                                      "--normalize", "--track-dir", tmp_path)
+    assert code == 0, error
+    assert "8 discrete actions (discretized Box), normalization on" in out
+    assert "15954 parameters" in out  # two nets + critic, counted by hand above
     scalars = read_scalars(only_run_dir(tmp_path))
     for tag in ["charts/episodic_return", "charts/episodic_length", "charts/SPS", "charts/learning_rate",
                 "losses/value_loss", "losses/policy_loss", "losses/entropy", "losses/approx_kl", "losses/clipfrac",
@@ -207,12 +208,12 @@ def test_cascade_discretized_hopper_run_writes_expected_scalars(tmp_path):
     assert abs(scalars["cascade/fallback_product"][-1][1] - last["cascade/contribution/net_1"]) < 1e-6
 
 
-def test_baseline_discretized_hopper_run_writes_expected_scalars(tmp_path):
-    proc = run_script("ppo_baseline_discrete.py", "--env-id", "Hopper-v4", "--total-timesteps", "2048",
-                      "--update-epochs", "2", "--eval-every", "1024", "--eval-episodes", "2",
-                      "--track-dir", tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "10441 parameters" in proc.stdout
+def test_baseline_discretized_hopper_run_writes_expected_scalars(tmp_path, capsys):
+    code, out, error = cli_in_process(capsys, "ppo_baseline_discrete.py", "--env-id", "Hopper-v4", "--total-timesteps",
+                                      "2048", "--update-epochs", "2", "--eval-every", "1024", "--eval-episodes", "2",
+                                      "--track-dir", tmp_path)
+    assert code == 0, error
+    assert "10441 parameters" in out
     scalars = read_scalars(only_run_dir(tmp_path))
     for tag in ["charts/episodic_return", "charts/SPS", "charts/learning_rate", "charts/parameters",
                 "losses/value_loss", "losses/policy_loss", "losses/entropy", "eval/episodic_return",
@@ -254,13 +255,13 @@ def test_bad_input_is_one_clear_line(tmp_path, script, extra, message):
     assert not (tmp_path / "runs").exists()
 
 
-def test_help_documents_every_flag():
-    proc = run_script("cascade_ppo_discrete.py", "--help")
-    assert proc.returncode == 0
+def test_help_documents_every_flag(capsys):
+    code, out, _ = cli_in_process(capsys, "cascade_ppo_discrete.py", "--help")
+    assert code == 0
     for flag in ["--n", "--k", "--discretize", "--freeze-previous", "--start-full", "--lr-schedule",
                  "--fallback-init", "--hidden-size", "--num-layers", "--no-normalize", "--eval-every",
                  "--eval-episodes"]:
-        assert flag in proc.stdout
+        assert flag in out
 
 
 @pytest.fixture(scope="module")
@@ -300,18 +301,19 @@ def test_cascade_resume_gives_identical_parameters(cartpole_run, tmp_path, start
     assert again == [(s, v) for s, v in original if s > first["global_step"]]
 
 
-def test_cascade_evaluate_and_resume_errors(cartpole_run, tmp_path):
+def test_cascade_evaluate_and_resume_errors(cartpole_run, tmp_path, capsys):
     run_dir = cartpole_run["run_dir"]
-    proc = run_script("cascade_ppo_discrete.py", "--evaluate", run_dir, "--eval-episodes", "2", "--deterministic")
-    assert proc.returncode == 0, proc.stderr
-    assert "CartPole-v1, 2 base net(s), step 2048: return" in proc.stdout
-    assert " ± " in proc.stdout and "over 2 deterministic episodes" in proc.stdout
+    code, out, error = cli_in_process(capsys, "cascade_ppo_discrete.py", "--evaluate", run_dir, "--eval-episodes", "2",
+                                      "--deterministic")
+    assert code == 0, error
+    assert "CartPole-v1, 2 base net(s), step 2048: return" in out
+    assert " ± " in out and "over 2 deterministic episodes" in out
     for extra, message in [(["--resume", str(tmp_path / "nope")], "no checkpoint at"),
                            (["--resume", run_dir, "--env-id", "Acrobot-v1"], "--env-id Acrobot-v1 differs")]:
-        assert message in error_line(run_script("cascade_ppo_discrete.py", *extra)), extra
+        assert message in error_line_in_process("cascade_ppo_discrete.py", *extra), extra
 
 
-def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
+def test_baseline_checkpoint_resume_and_evaluate(tmp_path, capsys):
     """Discretized Hopper (MuJoCo state and normalization statistics restored): resuming the checkpoint
     written half way gives the uninterrupted run's parameters."""
     args = pbd.Args(env_id="Hopper-v4", total_timesteps=2048, eval_every=512, eval_episodes=2, checkpoint_every=512,
@@ -323,10 +325,11 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path):
     resumed = resume_from(pbd, tmp_path / "mid.pt", tmp_path / "b")
     assert_same_parameters(full["actor"], resumed["actor"])
     assert_same_parameters(full["critic"], resumed["critic"])
-    proc = run_script("ppo_baseline_discrete.py", "--evaluate", full["run_dir"], "--eval-episodes", "2")
-    assert proc.returncode == 0 and "over 2 stochastic episodes" in proc.stdout and " ± " in proc.stdout, proc.stderr
-    proc = run_script("ppo_baseline_discrete.py", "--resume", full["run_dir"], "--hidden-size", "16")
-    assert "--hidden-size 16 differs" in error_line(proc)
+    code, out, error = cli_in_process(capsys, "ppo_baseline_discrete.py", "--evaluate", full["run_dir"],
+                                      "--eval-episodes", "2")
+    assert code == 0 and "over 2 stochastic episodes" in out and " ± " in out, error
+    assert "--hidden-size 16 differs" in error_line_in_process("ppo_baseline_discrete.py", "--resume", full["run_dir"],
+                                                               "--hidden-size", "16")
 
 
 @pytest.mark.slow

@@ -12,7 +12,7 @@ import cascade_ddpg as cd
 import cascade_sac as cs
 import learning_checks
 from cascade_plumbing.replay import buffer_capacity, store_transition
-from helpers import error_line, only_run_dir, read_scalars, run_script
+from helpers import cli_in_process, error_line, only_run_dir, read_scalars, run_script
 
 SCRIPTS = {"sac": cs, "ddpg": cd}
 # a fast env and tiny budgets: Pendulum episodes last 200 steps and only ever truncate
@@ -419,7 +419,7 @@ SAC_TAGS = ["losses/qf2_values", "losses/qf2_loss", "losses/qf_loss", "losses/al
 
 
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
-def test_hopper_smoke_run_scalars_checkpoints_resume_and_evaluate(algo, tmp_path):
+def test_hopper_smoke_run_scalars_checkpoints_resume_and_evaluate(algo, tmp_path, capsys):
     mod, script = SCRIPTS[algo], f"cascade_{algo}.py"
     proc = run_script(script, *SMOKE, "--track-dir", tmp_path / "runs")
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -462,22 +462,22 @@ def test_hopper_smoke_run_scalars_checkpoints_resume_and_evaluate(algo, tmp_path
     assert [s for s, _ in again["eval/episodic_return"]] == [600, 800]
     assert again["eval/episodic_return"] == scalars["eval/episodic_return"][-2:]
 
-    proc = run_script(script, "--evaluate", run_dir, "--eval-episodes", "2", "--members")
-    assert proc.returncode == 0, proc.stderr
-    assert "2 base net(s), step 800" in proc.stdout and "net 2 alone" in proc.stdout
-    proc = run_script(script, "--resume", run_dir)
-    assert proc.returncode == 0 and "nothing to resume" in proc.stdout, proc.stderr
+    code, out, error = cli_in_process(capsys, script, "--evaluate", run_dir, "--eval-episodes", "2", "--members")
+    assert code == 0, error
+    assert "2 base net(s), step 800" in out and "net 2 alone" in out
+    code, out, error = cli_in_process(capsys, script, "--resume", run_dir)
+    assert code == 0 and "nothing to resume" in out, error
 
 
-def test_help_names_the_baselines():
+def test_help_names_the_baselines(capsys):
     for script, baseline in [("cascade_sac.py", "--n 1 --hidden-size 256 --k 2000000"),
                              ("cascade_ddpg.py", "--n 1 --k 6000000 --hidden-size 64")]:
-        proc = run_script(script, "--help")
-        assert proc.returncode == 0
-        assert baseline in proc.stdout and "baseline" in proc.stdout
+        code, out, _ = cli_in_process(capsys, script, "--help")
+        assert code == 0
+        assert baseline in " ".join(out.split()) and "baseline" in out
         for flag in ["--keep-buffer", "--reset-critic", "--eval-deterministic", "--fallback-init", "--resume",
                      "--evaluate", "--no-restart-on-new-net", "--obs-reward-clip"]:
-            assert flag in proc.stdout
+            assert flag in out
 
 
 # ----------------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import time
 import pytest
 
 import sweep
-from helpers import ROOT, ctrl_c_reaches_child, only_run_dir, read_scalars, run_script
+from helpers import ROOT, cli_in_process, ctrl_c_reaches_child, only_run_dir, read_scalars, run_script
 
 FLAGSHIP = "cascade_ppo_continuous.py"
 BASELINE = "ppo_baseline.py"
@@ -67,7 +67,7 @@ def eval_steps(run_dir):
 
 
 @pytest.mark.parametrize("script", [FLAGSHIP, BASELINE])
-def test_resuming_a_finished_run_adds_nothing(tmp_path, script):
+def test_resuming_a_finished_run_adds_nothing(tmp_path, script, capsys):
     """Issue 28.1: `--resume` of a finished run evaluated its final step again (0, 3000, 6000, 8192, 8192)."""
     if not uses_run_main(script):
         pytest.skip(f"{script} does not use cascade_plumbing.runs.run_main yet")
@@ -79,10 +79,10 @@ def test_resuming_a_finished_run_adds_nothing(tmp_path, script):
     with open(os.path.join(run_dir, "checkpoint.pt"), "rb") as f:
         saved = f.read()
 
-    again = run_script(script, "--resume", run_dir, "--quiet")
-    assert again.returncode == 0, again.stderr[-2000:]
+    code, out, error = cli_in_process(capsys, script, "--resume", run_dir, "--quiet")
+    assert code == 0, error
     assert eval_steps(run_dir) == EVAL_STEPS
-    assert "nothing to resume" in again.stdout, again.stdout[-2000:]
+    assert "nothing to resume" in out, out[-2000:]
     assert {name: os.path.getmtime(os.path.join(run_dir, name)) for name in os.listdir(run_dir)} == files
     with open(os.path.join(run_dir, "checkpoint.pt"), "rb") as f:
         assert f.read() == saved

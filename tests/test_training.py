@@ -9,7 +9,7 @@ import torch
 import cascade_ppo_continuous as cpc
 import learning_checks
 from cascade_plumbing.envs import OBS_CLIP, find_wrapper
-from helpers import error_line, error_line_in_process, only_run_dir, read_scalars, run_script
+from helpers import cli_in_process, error_line, error_line_in_process, only_run_dir, read_scalars, run_script
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
 
@@ -48,15 +48,15 @@ def test_each_iteration_gets_fresh_critic_and_optimizer_and_keeps_normalization(
     assert all(s["optimized"] == s["model_numel"] for s in seen)
 
 
-def test_cascade_run_writes_expected_scalars_and_cycles_the_lr(tmp_path):
-    proc = run_script("cascade_ppo_continuous.py", "--env-id", "Hopper-v4", "--n", "3", "--k", "1024",
-                      "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2",
-                      "--eval-every", "1024", "--eval-episodes", "2", "--track-dir", tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+def test_cascade_run_writes_expected_scalars_and_cycles_the_lr(tmp_path, capsys):
+    code, out, error = cli_in_process(capsys, "cascade_ppo_continuous.py", "--env-id", "Hopper-v4", "--n", "3",
+                                      "--k", "1024", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs",
+                                      "2", "--eval-every", "1024", "--eval-episodes", "2", "--track-dir", tmp_path)
+    assert code == 0, error
     from test_method import cascade_parameters  # from the layer sizes; Hopper-v4: obs 11, action 3
 
     for size in (1, 2, 3):  # the parameter count (actor + critic) is printed per iteration
-        assert f"{cascade_parameters(11, 3, size)} parameters" in proc.stdout, proc.stdout[-2000:]
+        assert f"{cascade_parameters(11, 3, size)} parameters" in out, out[-2000:]
     scalars = read_scalars(only_run_dir(tmp_path))
     for tag in ["charts/episodic_return", "charts/SPS", "charts/learning_rate", "losses/value_loss",
                 "losses/policy_loss", "losses/entropy", "losses/approx_kl", "eval/episodic_return",
@@ -86,13 +86,13 @@ def test_parameter_count_is_logged_per_iteration(tmp_path):
     assert counts == sorted(counts) and len(set(counts)) == 6
 
 
-def test_baseline_run_writes_expected_scalars(tmp_path):
-    proc = run_script("ppo_baseline.py", "--env-id", "Hopper-v4", "--total-timesteps", "2048",
-                      "--num-steps", "512", "--num-minibatches", "4", "--update-epochs", "2",
-                      "--lr-schedule", "cyclic", "--cycle-steps", "1024",
-                      "--eval-every", "1024", "--eval-episodes", "2", "--track-dir", tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "10119 parameters" in proc.stdout  # Table 2, Hopper-v4 PPO
+def test_baseline_run_writes_expected_scalars(tmp_path, capsys):
+    code, out, error = cli_in_process(capsys, "ppo_baseline.py", "--env-id", "Hopper-v4", "--total-timesteps", "2048",
+                                      "--num-steps", "512", "--num-minibatches", "4", "--update-epochs", "2",
+                                      "--lr-schedule", "cyclic", "--cycle-steps", "1024",
+                                      "--eval-every", "1024", "--eval-episodes", "2", "--track-dir", tmp_path)
+    assert code == 0, error
+    assert "10119 parameters" in out  # Table 2, Hopper-v4 PPO
     scalars = read_scalars(only_run_dir(tmp_path))
     for tag in ["charts/episodic_return", "charts/SPS", "charts/learning_rate", "losses/value_loss",
                 "eval/episodic_return", "eval/episodic_return_std"]:
@@ -151,12 +151,12 @@ def test_baseline_bad_input(tmp_path, extra, message):
     assert not (tmp_path / "runs").exists()
 
 
-def test_help_documents_every_flag():
-    proc = run_script("cascade_ppo_continuous.py", "--help")
-    assert proc.returncode == 0
+def test_help_documents_every_flag(capsys):
+    code, out, _ = cli_in_process(capsys, "cascade_ppo_continuous.py", "--help")
+    assert code == 0
     for flag in ["--n", "--k", "--freeze-previous", "--start-full", "--lr-schedule", "--fallback-init",
                  "--hidden-size", "--num-layers", "--no-normalize", "--eval-every", "--eval-episodes"]:
-        assert flag in proc.stdout
+        assert flag in out
 
 
 @pytest.mark.parametrize("overrides", [dict(freeze_previous=True), dict(start_full=True),
