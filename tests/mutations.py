@@ -28,6 +28,10 @@ FLAGSHIP, FAST, DISCRETE = "cascade_ppo_continuous.py", "cascade_plumbing/fast.p
 SAC, DDPG = "cascade_sac.py", "cascade_ddpg.py"
 FLAGSHIP_TESTS = ("tests/test_method.py", "tests/test_gradients.py", "tests/test_hacking.py")
 DISCRETE_TESTS = ("tests/test_discrete_math.py", "tests/test_discrete.py")
+# Algorithm 1's loop, the inits and the PPO loss of the flagship, with the tests written for them
+LOOP_TESTS = ("tests/test_cascade_net.py", "tests/test_method.py",
+              "tests/test_training.py::test_each_iteration_gets_fresh_critic_and_optimizer_and_keeps_normalization",
+              "tests/test_training.py::test_cascade_run_writes_expected_scalars_and_cycles_the_lr")
 OFF_POLICY_TESTS = ("tests/test_sac_ddpg_updates.py", "tests/test_sac_ddpg.py::test_sac_actor_matches_plain_loop",
                     "tests/test_sac_ddpg.py::test_ddpg_actor_matches_plain_loop",
                     "tests/test_sac_ddpg.py::test_truncation_bootstraps_and_termination_does_not")
@@ -53,6 +57,33 @@ MUTATIONS = [
              "pg_loss = torch.min(pg_loss1, pg_loss2).mean()", FLAGSHIP_TESTS),
     Mutation("flagship: log-std of net 1 only", FLAGSHIP, "log_std = weight.T @ log_stds",
              "log_std = log_stds[:1].expand(weight.shape[1], -1)", FLAGSHIP_TESTS),
+    # the flagship's Algorithm 1 (a fresh critic, Adam and LR cycle per net; --freeze-previous), its inits,
+    # GAE, the rest of the PPO loss and the evaluation protocol (Appendix B.5)
+    Mutation("flagship loop: one critic for the whole run", FLAGSHIP, "if critic is None or not args.start_full:",
+             "if critic is None:",
+             ("tests/test_training.py::test_each_iteration_gets_fresh_critic_and_optimizer_and_keeps_normalization",)),
+    Mutation("flagship loop: one LR decay over the whole run", FLAGSHIP,
+             "frac = 1.0 - (update - 1.0) / updates_per_iteration",
+             "frac = 1.0 - ((iteration - 1) * updates_per_iteration + update - 1.0) / total_updates", LOOP_TESTS),
+    Mutation("flagship loop: --freeze-previous freezes the new net too", FLAGSHIP,
+             "actor.freeze_below(actor.size - 1)", "actor.freeze_below(actor.size)", LOOP_TESTS),
+    Mutation("flagship loop: --freeze-previous freezes nothing", FLAGSHIP,
+             "actor.freeze_below(actor.size - 1)", "actor.freeze_below(0)", LOOP_TESTS),
+    Mutation("flagship loop: a new net starts at 1 - fallback_init", FLAGSHIP,
+             "math.log(self.fallback_init / (1 - self.fallback_init))",
+             "math.log((1 - self.fallback_init) / self.fallback_init)", LOOP_TESTS),
+    Mutation("flagship loop: mean head with gain 1", FLAGSHIP,
+             "self.act_dim + (0 if is_bottom else 1), 0.01)", "self.act_dim + (0 if is_bottom else 1), 1.0)",
+             LOOP_TESTS),
+    Mutation("flagship loop: GAE without lambda", FLAGSHIP, "last = delta + gamma * gae_lambda * not_done * last",
+             "last = delta + gamma * not_done * last", LOOP_TESTS),
+    Mutation("flagship loop: advantages normalized only with --no-norm-adv", FLAGSHIP, "if args.norm_adv:",
+             "if not args.norm_adv:", ("tests/test_method.py::test_ppo_loss_matches_the_reference",)),
+    Mutation("flagship loop: value loss never clipped", FLAGSHIP,
+             "v_loss = 0.5 * torch.max((value - returns) ** 2, (v_clipped - returns) ** 2).mean()",
+             "v_loss = 0.5 * ((value - returns) ** 2).mean()", LOOP_TESTS),
+    Mutation("flagship loop: evaluation without the training statistics", FLAGSHIP,
+             "stats = obs_statistics(self.envs)", "stats = None", LOOP_TESTS),
     # the flagship's hand-written backward (section 2), checked against section 1
     Mutation("fast: dL/dz with l_k for 1 - l_k", FAST, "grad_logit = (torch.sigmoid(-fallback_logit) *",
              "grad_logit = (torch.sigmoid(fallback_logit) *", FLAGSHIP_TESTS),
@@ -60,6 +91,9 @@ MUTATIONS = [
              FLAGSHIP_TESTS),
     Mutation("fast: frozen nets get gradients", FAST, "param.grad[: actor.frozen_rows(first_net)] = 0.0", "pass",
              FLAGSHIP_TESTS),
+    Mutation("fast: the numpy acting forward counts a net's own fallback as one above it", FAST,
+             "above = np.triu(np.ones((n, n - 1), np.float32), -1) - own",
+             "above = np.triu(np.ones((n, n - 1), np.float32), -1)", LOOP_TESTS),
     Mutation("fast: no tanh derivative", FAST, "grad_z = tanh_backward(grad_hidden, hidden)", "grad_z = grad_hidden",
              FLAGSHIP_TESTS),
     # discrete PPO
