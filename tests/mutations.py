@@ -84,6 +84,14 @@ MUTATIONS = [
              "v_loss = 0.5 * ((value - returns) ** 2).mean()", LOOP_TESTS),
     Mutation("flagship loop: evaluation without the training statistics", FLAGSHIP,
              "stats = obs_statistics(self.envs)", "stats = None", LOOP_TESTS),
+    # the PPO baseline of Fig. 2 and, with a cyclic LR, of Fig. 3
+    Mutation("baseline: Adam kept across LR cycles", "ppo_baseline.py",
+             "optimizer = make_optimizer([params], args.learning_rate)  # a new cycle: fresh Adam moments", "pass",
+             ("tests/test_papers_code.py::test_cyclic_baseline_restarts_adam_every_cycle",)),
+    Mutation("baseline: the LR cycle never restarts", "ppo_baseline.py",
+             "frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle",
+             "frac = 1.0 - (update - 1) / updates_per_cycle",
+             ("tests/test_training.py::test_baseline_run_writes_expected_scalars",)),
     # the flagship's hand-written backward (section 2), checked against section 1
     Mutation("fast: dL/dz with l_k for 1 - l_k", FAST, "grad_logit = (torch.sigmoid(-fallback_logit) *",
              "grad_logit = (torch.sigmoid(fallback_logit) *", FLAGSHIP_TESTS),
