@@ -25,7 +25,6 @@ LONG_FIRST = (
     "test_sweep.py::test_ray_sweep_on_a_real_local_head",
     "test_hacking.py::test_unmodified_script_keeps_its_fast_paths",
     "test_plots.py::test_learning_curves_match_logged_returns",
-    "test_checkpoints.py::test_progress_lines_when_not_a_terminal",
     "test_stops.py::test_resuming_a_finished_run_adds_nothing",
     "test_tracking.py::test_sweep_passes_track_in_one_group",
     "test_sweep.py::test_local_sweep_reports_failure_and_skips_finished_runs",
@@ -43,6 +42,9 @@ def pytest_configure(config):
 
 
 def pytest_collection_modifyitems(config, items):
+    if not getattr(config.option, "numprocesses", None):  # one process (tests/mutations.py's `-x` runs): the
+        return  # order the tests were asked for, quickest reference tests first, so the first failure names them
+
     def rank(item):
         name = item.nodeid.split("/")[-1]
         return next((i for i, prefix in enumerate(LONG_FIRST) if name.startswith(prefix)), len(LONG_FIRST))

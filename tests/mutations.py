@@ -26,7 +26,9 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FLAGSHIP, FAST, DISCRETE = "cascade_ppo_continuous.py", "cascade_plumbing/fast.py", "cascade_ppo_discrete.py"
 SAC, DDPG = "cascade_sac.py", "cascade_ddpg.py"
-FLAGSHIP_TESTS = ("tests/test_method.py", "tests/test_gradients.py", "tests/test_hacking.py")
+# the independent references (a plain loop over the nets, CleanRL's formulas, autograd) first; then the hacking
+# tests, which also fail when section 1 and the fast paths no longer agree
+FLAGSHIP_TESTS = ("tests/test_cascade_net.py", "tests/test_method.py", "tests/test_gradients.py", "tests/test_hacking.py")
 DISCRETE_TESTS = ("tests/test_discrete_math.py", "tests/test_discrete.py")
 # Algorithm 1's loop, the inits and the PPO loss of the flagship, with the tests written for them
 LOOP_TESTS = ("tests/test_cascade_net.py", "tests/test_method.py",
