@@ -217,3 +217,16 @@ def test_adam_step_equals_torch_optimizer_step_bit_for_bit(module):
         for key in ("step", "exp_avg", "exp_avg_sq"):
             assert torch.equal(state[key], reference_state[key])
     assert not torch.equal(reference, start)
+
+
+def test_a_loss_that_cancels_to_near_zero_is_no_disagreement():
+    """Late in a run the policy loss can cancel half the value loss down to ~1e-7, where the two paths' float64
+    rounding (~1e-16) read as a relative error of ~1e-9 and switched an Ant-v4 run's fast path off at 5.8M steps.
+    The loss is compared on the scale of its O(1) terms, as its parts are; a real difference is still one."""
+    paths = fast.FastPaths(True, None, None)
+    loss = torch.tensor(1e-7, dtype=torch.float64)
+    parts = {"policy_loss": torch.tensor(-5e-8, dtype=torch.float64)}
+    gradient = [torch.ones(3, dtype=torch.float64)]
+    assert paths.disagreement(["w"], loss, parts, gradient, loss + 2e-16, parts, gradient) is None
+    message = paths.disagreement(["w"], loss, parts, gradient, loss + 1e-9, parts, gradient)
+    assert message is not None and "another loss" in message
