@@ -474,7 +474,7 @@ def test_help_names_the_baselines(capsys):
                              ("cascade_ddpg.py", "--n 1 --k 6000000 --hidden-size 64")]:
         code, out, _ = cli_in_process(capsys, script, "--help")
         assert code == 0
-        assert baseline in " ".join(out.split()) and "baseline" in out
+        assert baseline in out and "baseline" in out
         for flag in ["--keep-buffer", "--reset-critic", "--eval-deterministic", "--fallback-init", "--resume",
                      "--evaluate", "--no-restart-on-new-net", "--obs-reward-clip"]:
             assert flag in out
