@@ -9,8 +9,8 @@ lambda_i(x) in [0, 1] and the ensemble becomes
 The whole stack is trained end to end with PPO; each iteration gets a fresh critic, a fresh Adam and
 a fresh learning-rate cycle, while the observation/reward normalization statistics carry over.
 Paper: Schmöcker & Dockhorn, "Cascade - A sequential ensemble method for continuous control tasks",
-RLJ 2025: the method is Section 3 (pseudocode: Algorithm 1, Appendix A), the hyperparameters Appendix B.4, the
-evaluation protocol Appendix B.5; the ablations are the flags of `Args` (figure numbers in their help).
+RLJ 2025: the method is Section 3 (pseudocode: Algorithm 1, Appendix A), the base nets and Cascade's own
+hyperparameters Appendix B.1-B.3, PPO's Appendix B.4 (CleanRL's defaults), the evaluation protocol Appendix B.5; the ablations are the flags of `Args` (figure numbers in their help).
 
 Reading order: `Args`; section 1, the algorithm in plain torch with autograd (the net, the policy and how
 it acts, the loss, the training loop, the evaluation): the one definition of the math, and the place to
@@ -25,7 +25,6 @@ wires the run to the shared plumbing (cascade_plumbing/: envs, logging, checkpoi
 
 from __future__ import annotations
 
-import functools
 import math
 import os
 import warnings
@@ -97,13 +96,13 @@ class Args:
 
     # Cascade
     n: int = 6
-    """number of base nets, i.e. iterations of Cascade (the run lasts n*k steps)"""
+    """number of base nets, i.e. iterations of Cascade (the run lasts n*k steps, each k rounded down to whole rollouts)"""
     k: int = 1_000_000
-    """environment steps per iteration; a new base net is added every k steps"""
+    """environment steps per iteration; a new base net is added every k steps (rounded down to whole rollouts of num_envs*num_steps: k=1M with 2048-step rollouts gives 488 updates, 999,424 steps)"""
     hidden_size: int = 16
     """width of each hidden layer of a base net (paper: 16)"""
     num_layers: int = 2
-    """number of hidden layers of a base net (Fig. 8 tiny nets: 1)"""
+    """number of hidden layers of a base net (Fig. 8's tiny nets: 1, with --hidden-size 1)"""
     fallback_init: float = 0.5
     """initial fallback weight lambda of each new base net, in (0, 1) (Fig. 11: 0.05, 0.5, 0.9)"""
     freeze_previous: bool = False
@@ -185,28 +184,16 @@ def stacked_affine(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) ->
     return torch.baddbmm(bias, x, weight)
 
 
-@functools.lru_cache
-def at_or_above_matrix(n: int, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
-    """A [n, n-1] 0/1 matrix: row i is net i (1..n), column j the fallback l_j of net j (2..n); the entry
-    is 1 where j >= i, so that (matrix @ log l)_i = sum_{j>=i} log l_j. Cached: always a normal tensor, never
-    an inference-mode one, so autograd can use it whichever path made it first."""
-    with torch.inference_mode(False):
-        return torch.ones(n, max(n - 1, 0), dtype=dtype, device=device).triu(-1)
-
-
-def contributions(fallback_logit: torch.Tensor) -> torch.Tensor:
-    """Share w_i of each base net in the ensemble output, from the fallback logits z [n-1, B] of nets 2..n.
+def contributions(fallback: torch.Tensor) -> torch.Tensor:
+    """Share w_i of each base net in the ensemble output, from the fallbacks l [n-1, B] of nets 2..n.
 
     Unrolling C_i = l_i*C_{i-1} + (1-l_i)*b_i gives C_n = sum_i w_i*b_i with
     w_i = (1 - l_i) * prod_{j>i} l_j and l_1 := 0; w_1 = prod_{j>=2} l_j is the fallback product.
-    With l = sigmoid(z): log l = logsigmoid(z) and log(1 - l) = log l - z, so
-    log w_i = sum_{j>=i} log l_j - z_i (no z_1 term): one matmul and a subtraction, in log space so that
-    no product underflows. Returns w [n, B], summing to 1 over nets.
+    Returns w [n, B], summing to 1 over nets.
     """
-    matrix = at_or_above_matrix(fallback_logit.shape[0] + 1, fallback_logit.dtype, fallback_logit.device)
-    log_weight = torch.mm(matrix, nn.functional.logsigmoid(fallback_logit))
-    log_weight[1:] -= fallback_logit  # z_i of nets 2..n (net 1 has none)
-    return log_weight.exp()
+    ones = fallback.new_ones((1, *fallback.shape[1:]))
+    later = torch.cat([fallback, ones]).flip(0).cumprod(0).flip(0)  # row i: prod_{j>i} l_j
+    return torch.cat([ones, 1 - fallback]) * later
 
 
 class CascadeActor(nn.Module):
@@ -306,10 +293,10 @@ class CascadeActor(nn.Module):
             zeros = obs.new_zeros(obs.shape[0], self.act_dim)
             return zeros, zeros, obs.new_zeros(0, obs.shape[0]), obs.new_zeros(0, obs.shape[0])
         means, log_stds, fallback_logit = self.base_nets(obs, cache)
-        weight = contributions(fallback_logit)  # [n, B]
+        fallback = torch.sigmoid(fallback_logit)  # l_i, nets 2..n
+        weight = contributions(fallback)  # [n, B]
         mean = (weight[..., None] * means).sum(0)  # C_n = sum_i w_i b_i
         log_std = weight.T @ log_stds  # the same sum for the per-net log-std vectors
-        fallback = torch.sigmoid(fallback_logit)
         if cache is not None:
             cache.update(fallback_logit=fallback_logit, weight=weight)
         return mean, log_std, fallback, weight
@@ -372,7 +359,7 @@ class TanhMLP(nn.Module):
 
 
 def make_critic(obs_dim: int) -> TanhMLP:
-    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh), recreated at every Cascade iteration."""
+    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh), recreated at every Cascade iteration (but with --start-full)."""
     return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
 
 
@@ -433,7 +420,9 @@ def autograd_gradients(actor: CascadeActor, critic: TanhMLP, params: list[nn.Par
 def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
     """PPO's Adam (eps 1e-5, CleanRL); the fused kernel updates all parameters at once, ~3x faster on CPU.
     Any other optimizer works too: the fast path calls the fused Adam kernel directly only for this exact
-    Adam and checks its step against `optimizer_step` below."""
+    Adam and checks its step against `optimizer_step` below. `params` is one flat buffer that every
+    parameter of the actor and critic is a view of (`share_one_buffer`), so the optimizer has one group
+    (the loop anneals `param_groups[0]`, as CleanRL)."""
     return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
 
 
@@ -572,7 +561,9 @@ def train(args: Args, checkpoint: dict | None = None,
                 b_inds = torch.randperm(batch_size, device=device)
                 for start in range(0, batch_size, minibatch_size):
                     minibatch = unpack(torch.index_select(batch, 0, b_inds[start : start + minibatch_size]))
-                    if fast.gradients:  # section 2: the same step by hand, checked against the two lines below
+                    # One step: edit `autograd_gradients` and `optimizer_step`, not these lines. The fast path
+                    # replaces the two calls below by the same step by hand, checked against those two functions.
+                    if fast.gradients:
                         loss, parts = fast.update(actor, critic, params, optimizer, minibatch, args, global_step)
                     if not fast.gradients:  # the definition (also right after the fast path switched itself off)
                         loss, parts = autograd_gradients(actor, critic, all_params, minibatch, args)

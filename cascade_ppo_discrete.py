@@ -93,9 +93,9 @@ class Args:
 
     # Cascade
     n: int = 10
-    """number of base nets, i.e. iterations of Cascade (the run lasts n*k steps; paper Fig. 16: 10)"""
+    """number of base nets, i.e. iterations of Cascade (the run lasts n*k steps, each k rounded down to whole rollouts; paper Fig. 16: 10)"""
     k: int = 1_000_000
-    """environment steps per iteration; a new base net is added every k steps"""
+    """environment steps per iteration; a new base net is added every k steps (rounded down to whole rollouts of num_envs*num_steps)"""
     hidden_size: int = 64
     """width of each hidden layer of a base net (paper, discrete actions: 64)"""
     num_layers: int = 2

@@ -205,14 +205,6 @@ def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
     return (0.5 + LOG_SQRT_2PI + log_std).sum(-1)
 
 
-def with_entropy(parts: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The hand-written update's parts as section 1 names them: it skips the entropy (only logged, with the
-    default --ent-coef 0) and keeps the log-std instead, so the entropy is computed here when it is wanted."""
-    if "entropy" in parts or "log_std" not in parts:
-        return parts
-    return {**parts, "entropy": gaussian_entropy(parts["log_std"]).mean()}
-
-
 def ppo_loss_gradients(
     mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor, old_logprob: torch.Tensor,
     advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor, args: Any,
@@ -259,12 +251,13 @@ def ppo_loss_gradients(
         grad_v = value - returns
     grad_value = grad_v.mul_(args.vf_coef / batch)[:, None]
 
+    entropy = gaussian_entropy(log_std).mean()
     loss = pg_loss + args.vf_coef * v_loss
     if args.ent_coef:  # loss - c * mean_b entropy_b; d/dlog_std_bj = -c/B (with the default c = 0: skipped)
-        loss = loss - args.ent_coef * gaussian_entropy(log_std).mean()
+        loss = loss - args.ent_coef * entropy
         grad_log_std -= args.ent_coef / batch
-    # the entropy is only logged (from the epoch's last minibatch): `log_std` lets the logger compute it
-    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "log_std": log_std,
+    # the same parts as `ppo_loss` returns, so that the training loop reads the same keys on either path
+    losses = {"loss": loss, "policy_loss": pg_loss, "value_loss": v_loss, "entropy": entropy,
               "logratio": logratio, "ratio": ratio}
     return losses, grad_mean, grad_log_std, grad_value
 
@@ -607,7 +600,7 @@ class FastPaths:
                                     "non-finite guard judges section 1's values from here on)", step)
                     return
                 what = self.disagreement(names, reference_loss, reference_parts, reference, fast_loss,
-                                         with_entropy(fast_parts), fast)
+                                         fast_parts, fast)
                 if what is None:
                     what = self.optimizer_disagreement(optimizer_step, optimizer, reference, args)
         except Exception as exc:

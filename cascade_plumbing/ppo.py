@@ -15,7 +15,6 @@ import torch.nn as nn
 from . import envs as envs_module
 from .envs import OBS_CLIP, check_env_id
 from .errors import fail
-from .fast import with_entropy
 
 
 def make_env(env_id: str, gamma: float, normalize: bool, index: int = 0, video: bool = False) -> Callable[[], gym.Env]:
@@ -76,9 +75,8 @@ def count_parameters(*modules: nn.Module) -> int:
 def log_ppo_update(writer: Any, global_step: int, optimizer: torch.optim.Optimizer, parts: dict,
                    old_approx_kl: torch.Tensor, approx_kl: torch.Tensor, ratios: torch.Tensor, b_values: torch.Tensor,
                    b_returns: torch.Tensor, clip_coef: float, fast: Any) -> None:
-    """CleanRL's scalars of one update (ppo_continuous_action.py's names; the entropy from `parts["entropy"]`, or
-    from `parts["log_std"]` where the hand-written update skipped it) and the state of the fast paths (`fast`:
-    cascade_plumbing.fast.FastPaths)."""
+    """CleanRL's scalars of one update (ppo_continuous_action.py's names; the losses from the epoch's last
+    minibatch's `parts`) and the state of the fast paths (`fast`: cascade_plumbing.fast.FastPaths)."""
     write = writer.add_scalar
     y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
     var_y = np.var(y_true)
@@ -86,7 +84,7 @@ def log_ppo_update(writer: Any, global_step: int, optimizer: torch.optim.Optimiz
     write("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
     write("losses/value_loss", parts["value_loss"].item(), global_step)
     write("losses/policy_loss", parts["policy_loss"].item(), global_step)
-    write("losses/entropy", with_entropy(parts)["entropy"].item(), global_step)
+    write("losses/entropy", parts["entropy"].item(), global_step)
     write("losses/old_approx_kl", old_approx_kl.item(), global_step)
     write("losses/approx_kl", approx_kl.item(), global_step)
     write("losses/clipfrac", ((ratios - 1.0).abs() > clip_coef).float().mean().item(), global_step)

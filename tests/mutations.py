@@ -50,9 +50,10 @@ class Mutation:
 
 MUTATIONS = [
     # the flagship's section 1: the combination (Eq. 1 unrolled), the nets, the loss
-    Mutation("flagship: log w_i + z_i instead of - z_i", FLAGSHIP, "log_weight[1:] -= fallback_logit",
-             "log_weight[1:] += fallback_logit", FLAGSHIP_TESTS),
-    Mutation("flagship: w_i includes l_i itself", FLAGSHIP, ".triu(-1)", ".triu(0)", FLAGSHIP_TESTS),
+    Mutation("flagship: w_i with l_i for 1 - l_i", FLAGSHIP, "return torch.cat([ones, 1 - fallback]) * later",
+             "return torch.cat([ones, fallback]) * later", FLAGSHIP_TESTS),
+    Mutation("flagship: w_i includes l_i itself", FLAGSHIP, "later = torch.cat([fallback, ones])",
+             "later = torch.cat([ones, fallback])", FLAGSHIP_TESTS),
     Mutation("flagship: fallback head on the net below", FLAGSHIP, "fallback_logit = stacked_affine(hidden[1:],",
              "fallback_logit = stacked_affine(hidden[:-1],", FLAGSHIP_TESTS),
     Mutation("flagship: unclipped surrogate (min)", FLAGSHIP, "pg_loss = torch.max(pg_loss1, pg_loss2).mean()",

@@ -168,13 +168,13 @@ def test_gaussian_entropy_matches_torch_normal():
 
 def test_contributions_closed_form_small_case():
     lam2, lam3 = 0.3, 0.8
-    w = cpc.contributions(torch.logit(torch.tensor([[lam2], [lam3]]))).flatten()
+    w = cpc.contributions(torch.tensor([[lam2], [lam3]])).flatten()
     expected = torch.tensor([lam2 * lam3, (1 - lam2) * lam3, 1 - lam3])
     torch.testing.assert_close(w, expected)
     assert math.isclose(w.sum().item(), 1.0, rel_tol=1e-6)
     # a single net carries the whole output; saturated fallbacks give exact zeros, never NaN
     assert torch.equal(cpc.contributions(torch.zeros(0, 4)), torch.ones(1, 4))
-    w = cpc.contributions(torch.tensor([[-200.0, 200.0]]))
+    w = cpc.contributions(torch.sigmoid(torch.tensor([[-200.0, 200.0]])))
     assert torch.equal(w, torch.tensor([[0.0, 1.0], [1.0, 0.0]]))
 
 

@@ -188,6 +188,30 @@ def test_autograd_path_writes_the_same_gradients(n, frozen):
 
 
 @pytest.mark.parametrize("module", [pb, cpc])
+@pytest.mark.parametrize("variant", [0, 1])
+def test_hand_written_update_returns_the_parts_section_1_returns(module, variant):
+    """The training loop reads `parts` from whichever path stepped (the ratios, the entropy, the losses): the
+    hand-written update returns the same keys as `autograd_gradients`, with the same values."""
+    args = module.Args(**ARG_VARIANTS[variant])
+    actor = make_actor(3, seed=7) if module is cpc else pb.Actor(5, 3, 16)
+    critic = module.make_critic(5)
+    randomize(critic, 4)
+    if module is pb:
+        randomize(actor, 5)
+    batch = minibatch(actor, critic, 5, 3, seed=variant)
+    params = [*actor.parameters(), *critic.parameters()]
+    fast.share_one_buffer(params)
+    hand_written = fast.cascade_ppo_gradients if module is cpc else fast.mlp_ppo_gradients
+    with torch.no_grad():
+        _, fast_parts = hand_written(actor, critic, batch, args)
+    _, parts = module.autograd_gradients(actor, critic, params, batch, args)
+    assert fast_parts.keys() == parts.keys()
+    for key, value in parts.items():
+        torch.testing.assert_close(torch.as_tensor(fast_parts[key]), torch.as_tensor(value).detach(), rtol=1e-9,
+                                   atol=1e-12, msg=key)
+
+
+@pytest.mark.parametrize("module", [pb, cpc])
 def test_adam_step_equals_torch_optimizer_step_bit_for_bit(module):
     """adam_step calls the fused kernel directly; it must do exactly what Adam.step() does, through
     learning-rate changes (annealing) and a checkpoint round trip of the optimizer state."""

@@ -73,8 +73,8 @@ EDITS = {
                    "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef + 0.01 * mean.pow(2).mean()")],
     "relu base nets": [("hidden = torch.tanh(stacked_affine(", "hidden = torch.relu(stacked_affine(")],
     "relu mlp": [("x = torch.tanh(torch.addmm(bias, x, weight))", "x = torch.relu(torch.addmm(bias, x, weight))")],
-    "softmax gating": [("    return log_weight.exp()",
-                        "    return torch.softmax(torch.cat([fallback_logit.new_zeros(1, fallback_logit.shape[1]), "
+    "softmax gating": [("        weight = contributions(fallback)  # [n, B]",
+                        "        weight = torch.softmax(torch.cat([fallback_logit.new_zeros(1, obs.shape[0]), "
                         "fallback_logit]), 0)")],
     # issue 27's three classes, with edits of our own:
     # 1. a term added to the objective where autograd computes it (not in ppo_loss): pull the log-stds to 1
