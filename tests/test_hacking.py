@@ -76,6 +76,9 @@ EDITS = {
     "softmax gating": [("        weight = contributions(fallback)  # [n, B]",
                         "        weight = torch.softmax(torch.cat([fallback_logit.new_zeros(1, obs.shape[0]), "
                         "fallback_logit]), 0)")],
+    # a review (2026-12-03): the fallback rule, written once in `forward`, reaches the policy (not only the logs)
+    "fallback temperature": [("        fallback = torch.sigmoid(fallback_logit)  # l_i, nets 2..n",
+                              "        fallback = torch.sigmoid(fallback_logit / 2)")],
     # issue 27's three classes, with edits of our own:
     # 1. a term added to the objective where autograd computes it (not in ppo_loss): pull the log-stds to 1
     "objective term": [("        grads = torch.autograd.grad(loss, params, allow_unused=True)",
@@ -117,6 +120,8 @@ CASES = [  # script, edit, the parts the warnings must name (in order)
     ("cascade_ppo_continuous.py", "loss term", ["computes another loss than autograd_gradients"]),
     ("cascade_ppo_continuous.py", "relu base nets", ["draws other actions than act()", "gradient of actor.hidden"]),
     ("cascade_ppo_continuous.py", "softmax gating", ["draws other actions than act()", "gradient of actor.fallback"]),
+    ("cascade_ppo_continuous.py", "fallback temperature", ["draws other actions than act()",
+                                                           "gradient of actor.fallback"]),
     ("cascade_ppo_continuous.py", "objective term", ["computes another loss than autograd_gradients"]),
     ("cascade_ppo_continuous.py", "laplace policy", ["draws other actions than act()",
                                                      "computes another loss than autograd_gradients"]),
