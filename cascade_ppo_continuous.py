@@ -359,7 +359,7 @@ class TanhMLP(nn.Module):
 
 
 def make_critic(obs_dim: int) -> TanhMLP:
-    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh), recreated at every Cascade iteration (but with --start-full)."""
+    """The PPO value net, obs -> 64 -> 64 -> 1 (tanh), recreated at every Cascade iteration (except with --start-full, which keeps one critic)."""
     return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])
 
 

@@ -380,7 +380,9 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             b_inds = torch.randperm(batch_size, device=device)
             for start in range(0, batch_size, minibatch_size):
                 minibatch = unpack(torch.index_select(batch, 0, b_inds[start : start + minibatch_size]))
-                if fast.gradients:  # section 2: the same step by hand, checked against the two lines below
+                # One step: edit `autograd_gradients` and `optimizer_step`, not these lines. The fast path
+                # replaces the two calls below by the same step by hand, checked against those two functions.
+                if fast.gradients:
                     loss, parts = fast.update(actor, critic, params, optimizer, minibatch, args, global_step)
                 if not fast.gradients:  # the definition (also right after the fast path switched itself off)
                     loss, parts = autograd_gradients(actor, critic, all_params, minibatch, args)

@@ -212,7 +212,7 @@ def ppo_loss_gradients(
     """`ppo_loss` and its gradient w.r.t. the nets' outputs, written out by hand.
 
     mean, log_std [B, A] (log_std per sample), value [B]. Returns (losses, dL/dmean [B, A],
-    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss, its terms, the log-ratio and ratio.
+    dL/dlog_std [B, A], dL/dvalue [B, 1]); `losses` holds the loss, its terms, the entropy, the log-ratio and ratio.
     """
     batch = len(value)
     # log pi(a|s) = sum_j -u_j^2/2 - log_std_j - log sqrt(2 pi), with u = (a - mean) / std

@@ -39,8 +39,9 @@ FEWER_MINIBATCHES = dict(num_minibatches=8, update_epochs=4)  # 32 checks, not 3
                                            (pb, dict(total_timesteps=8192))])
 def test_unmodified_script_keeps_its_fast_paths(module, budget, tmp_path):
     """The float64 checks pass on every rollout and update of a real run (the default settings), by many orders
-    of magnitude, also with saturated fallbacks (--fallback-init 0.999999: 1 - l must not be computed as a
-    difference, which loses six digits) and frozen nets (with fewer minibatches: every check still runs)."""
+    of magnitude, also with saturated fallbacks (--fallback-init 0.999999: the hand-written dL/dz must not
+    compute 1 - l as a difference, which loses six digits; section 1's forward does, and float64 keeps ten) and
+    frozen nets (with fewer minibatches: every check still runs)."""
     result = module.train(module.Args(env_id="Hopper-v4", eval_every=0, track_dir=str(tmp_path), quiet=True,
                                       **budget))
     fast = result["fast_paths"]
