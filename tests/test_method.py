@@ -6,6 +6,7 @@ scripts against one reference written here, the CleanRL/paper defaults and initi
 parameter counts from the layer sizes (and Table 2), and `--freeze-previous` over a whole run.
 """
 
+import copy
 import math
 import os
 
@@ -148,6 +149,41 @@ def test_evaluate_saved_returns_equal_a_direct_evaluation(module, deterministic,
     assert clearly_apart(raw.mean(), direct.mean()), (raw, direct)
 
 
+class ActionLog(gym.Wrapper):
+    """Keeps every action the env is stepped with."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.actions = []
+
+    def step(self, action):
+        self.actions.append(np.array(action))
+        return self.env.step(action)
+
+
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+def test_evaluation_samples_the_policy_unless_deterministic(module):
+    """The paper evaluates the stochastic policy (Appendix B.5): evaluation episodes act with samples of
+    N(mean, std), and with `deterministic` (--evaluate --deterministic) with the mean itself."""
+    mean, std = 0.3, 0.2  # well inside Hopper's [-1, 1]: the evaluation's clip to the bounds rarely acts
+
+    def policy(obs):
+        out = (torch.full((len(obs), 3), mean), torch.full((len(obs), 3), math.log(std)))
+        return (*out, obs.new_zeros(0, len(obs))) if module is cpc else out
+
+    for deterministic in (False, True):
+        evaluator = module.Evaluator("Hopper-v4", 3, seed=1, wrap=ActionLog)
+        evaluator(policy, None, 0, deterministic)
+        actions = np.concatenate([env.actions for env in evaluator.envs])
+        evaluator.close()
+        assert len(actions) > 30
+        if deterministic:
+            np.testing.assert_array_equal(actions, np.float32(mean))
+        else:
+            z = (actions - mean) / std
+            assert abs(z.mean()) < 0.3 and 0.8 < z.std() < 1.2, (z.mean(), z.std())
+
+
 # ----------------------------------------------------------------------------------------------
 # 2. GAE and the PPO loss of both scripts against one independent reference
 # ----------------------------------------------------------------------------------------------
@@ -255,6 +291,87 @@ def test_ppo_loss_matches_the_reference(module, settings):
     torch.testing.assert_close(parts["value_loss"], ref_v, rtol=1e-10, atol=1e-12)
     if "entropy" in parts:
         torch.testing.assert_close(parts["entropy"], ref_entropy, rtol=1e-10, atol=1e-12)
+
+
+class RecordedEnvs:
+    """The training envs, passed through, keeping what the loop is given and sends: every observation (as float32,
+    the loop's cast), action, reward and episode end."""
+
+    def __init__(self, envs):
+        self.envs, self.obs, self.actions, self.rewards, self.dones = envs, [], [], [], []
+
+    def __getattr__(self, name):
+        return getattr(self.envs, name)
+
+    def reset(self, **kwargs):
+        obs, info = self.envs.reset(**kwargs)
+        self.obs.append(obs.astype(np.float32))
+        self.dones.append(np.zeros(len(obs), np.float32))
+        return obs, info
+
+    def step(self, actions):
+        self.actions.append(np.array(actions, np.float32))
+        obs, reward, terminations, truncations, info = self.envs.step(actions)
+        self.obs.append(obs.astype(np.float32))
+        self.rewards.append(np.asarray(reward, np.float32))
+        self.dones.append(np.logical_or(terminations, truncations).astype(np.float32))
+        return obs, reward, terminations, truncations, info
+
+
+@pytest.mark.parametrize("autograd", [False, True], ids=["fast_paths", "autograd"])
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+def test_one_whole_update_matches_the_references(module, autograd, monkeypatch, tmp_path):
+    """The last update of a real run (Cascade: the first of its second net) against the plain references of this
+    file, in float64; one rollout, one epoch, one minibatch of the whole rollout: the rollout's actions are samples of the policy, the old log-probs,
+    values, GAE and returns are built from the rollout, and the parameters move by the gradient of the reference
+    loss, clipped to the global norm, times the learning rate. SGD replaces Adam here (its first step is about
+    lr * sign(gradient) and would hide a wrong term); the clip and the annealed rate are the scripts' own."""
+    recorded, initial = [], []
+    make_vector_env, share_one_buffer = module.make_vector_env, module.share_one_buffer
+    monkeypatch.setattr(module, "make_vector_env", lambda args: recorded.append(RecordedEnvs(make_vector_env(args)))
+                        or recorded[-1])
+    monkeypatch.setattr(module, "share_one_buffer", lambda params: initial.append(
+        [p.detach().clone() for p in params]) or share_one_buffer(params))
+    monkeypatch.setattr(module, "make_optimizer", lambda params, learning_rate: torch.optim.SGD(params, learning_rate))
+    budget = dict(n=2, k=256) if module is cpc else dict(total_timesteps=256)
+    args = module.Args(env_id="Hopper-v4", num_steps=256, num_minibatches=1, update_epochs=1, learning_rate=0.5,
+                       eval_every=0, checkpoint_every=0, autograd=autograd, quiet=True, track_dir=str(tmp_path),
+                       **budget)
+    result = module.train(args)
+    envs, = recorded
+    assert len(initial) == (2 if module is cpc else 1) and len(envs.actions) == 256 * len(initial)
+
+    actor, critic = copy.deepcopy(result["actor"]).double(), copy.deepcopy(result["critic"]).double()
+    params = [*actor.parameters(), *critic.parameters()]
+    with torch.no_grad():
+        for param, start in zip(params, initial[-1]):
+            param.copy_(start)
+    obs = torch.as_tensor(np.concatenate(envs.obs[-257:-1])).double()  # the last rollout
+    actions = torch.as_tensor(np.concatenate(envs.actions[-256:])).double()
+    mean, log_std = actor(obs)[:2]
+    log_std = log_std.expand_as(mean)
+    with torch.no_grad():
+        # the rollout's actions: samples of the policy the update starts from, N(mean, exp(log_std)) per dimension
+        z = ((actions - mean) / log_std.exp()).numpy()
+        assert abs(z.mean()) < 0.2 and 0.85 < z.std() < 1.15, (z.mean(), z.std())
+        values = critic(obs)[:, 0]
+        next_value = critic(torch.as_tensor(envs.obs[-1]).double())[:, 0]
+        rewards, dones = np.stack(envs.rewards[-256:]), np.stack(envs.dones[-257:])
+        advantages = torch.as_tensor(reference_gae(rewards, dones[:-1], values.numpy()[:, None], next_value.numpy(),
+                                                   dones[-1], args.gamma, args.gae_lambda)[:, 0])
+        old_logprob = torch.distributions.Normal(mean, log_std.exp()).log_prob(actions).sum(1)
+    loss = reference_ppo_loss(mean, log_std, critic(obs)[:, 0], actions, old_logprob, advantages,
+                              advantages + values, values, args)[0]
+    grads = torch.autograd.grad(loss, params)
+    norm = torch.cat([g.reshape(-1) for g in grads]).norm()
+    scale = min(1.0, args.max_grad_norm / (float(norm) + 1e-6))
+    steps = [-args.learning_rate * scale * g for g in grads]
+    moved = [(p.double() - start).detach() for p, start in
+             zip([*result["actor"].parameters(), *result["critic"].parameters()], initial[-1])]
+    largest = max(float(step.abs().max()) for step in steps if step.numel())
+    assert largest > 1e-3  # the update moved the parameters well above float32 rounding
+    for step, got in zip(steps, moved):  # measured: within 3e-7 of the largest step (float32 rounding)
+        torch.testing.assert_close(got, step, rtol=0, atol=1e-4 * largest)
 
 
 # ----------------------------------------------------------------------------------------------

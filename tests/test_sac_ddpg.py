@@ -370,6 +370,49 @@ def test_truncation_bootstraps_and_termination_does_not(algo):
     torch.testing.assert_close(b_dones, (b_actions[:, 0] > 0.5).float())
 
 
+class WideBoxEnv(gym.Env):
+    """Random observations; actions in [0, 10] x [-1, 1] (half ranges 5 and 1, centres 5 and 0)."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+    action_space = gym.spaces.Box(np.array([0.0, -1.0], np.float32), np.array([10.0, 1.0], np.float32))
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+gym.register("CascadeTestWideBox-v0", entry_point=WideBoxEnv, max_episode_steps=50)
+
+
+@pytest.mark.parametrize("noise", [0.1, 2.0])
+def test_ddpg_explores_with_noise_scaled_to_the_bounds_and_clipped(noise, tmp_path):
+    """CleanRL's exploration as the training loop applies it: the env gets the policy's action plus Gaussian noise
+    of std `exploration_noise` x the half range of each action dimension, clipped into the bounds. With a learning
+    rate of 0 the policy never changes, so the stored actions can be compared with the final actor's."""
+    learning_starts, k = 100, 600
+    result = cd.train(cd.Args(env_id="CascadeTestWideBox-v0", n=1, k=k, learning_starts=learning_starts,
+                              batch_size=32, learning_rate=0.0, exploration_noise=noise, eval_every=0, quiet=True,
+                              track_dir=str(tmp_path)))
+    buffer = result["buffer"]
+    obs, actions = buffer.obs[learning_starts:k], buffer.actions[learning_starts:k]  # the policy's steps
+    with torch.no_grad():
+        policy = result["actor"](torch.as_tensor(obs))[0].numpy()
+    low, high = WideBoxEnv.action_space.low, WideBoxEnv.action_space.high
+    assert ((actions >= low) & (actions <= high)).all()
+    at_bound = (actions == low) | (actions == high)
+    if noise == 0.1:  # clipping is rare (the policy acts near the centre): the noise shows as it was drawn
+        assert at_bound.mean() < 0.05
+        inside = ~at_bound
+        for dim, half_range in enumerate((high - low) / 2):
+            z = (actions[inside[:, dim], dim] - policy[inside[:, dim], dim]) / (noise * half_range)
+            assert abs(z.mean()) < 0.3 and 0.8 < z.std() < 1.2, (dim, z.mean(), z.std())
+    else:  # std 10 and 2 around the centres, 5 and 1 from the bounds: P(|z| > 0.5) = 62% of actions end at a bound
+        assert ((0.5 < at_bound.mean(0)) & (at_bound.mean(0) < 0.75)).all(), at_bound.mean(0)
+
+
 def test_replay_buffer_wraps_and_clears():
     buffer = cs.ReplayBuffer(4, 2, 1)
     for i in range(6):
