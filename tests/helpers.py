@@ -5,6 +5,8 @@ import signal
 import subprocess
 import sys
 
+import gymnasium as gym
+import numpy as np
 import torch
 from filelock import FileLock
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -138,3 +140,40 @@ def error_line_in_process(script, *args):
     assert code != 0, f"{script} {args} did not fail"
     assert message.startswith("error:") and "\n" not in message, message
     return message
+
+
+class RecordedEnvs:
+    """The training envs, passed through, keeping what the loop is given and sends: every observation (as float32,
+    the loop's cast), action, reward and episode end."""
+
+    def __init__(self, envs):
+        self.envs, self.obs, self.actions, self.rewards, self.dones = envs, [], [], [], []
+
+    def __getattr__(self, name):
+        return getattr(self.envs, name)
+
+    def reset(self, **kwargs):
+        obs, info = self.envs.reset(**kwargs)
+        self.obs.append(obs.astype(np.float32))
+        self.dones.append(np.zeros(len(obs), np.float32))
+        return obs, info
+
+    def step(self, actions):
+        self.actions.append(np.array(actions, np.float32))
+        obs, reward, terminations, truncations, info = self.envs.step(actions)
+        self.obs.append(obs.astype(np.float32))
+        self.rewards.append(np.asarray(reward, np.float32))
+        self.dones.append(np.logical_or(terminations, truncations).astype(np.float32))
+        return obs, reward, terminations, truncations, info
+
+
+class ActionLog(gym.Wrapper):
+    """Keeps every action the env is stepped with."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.actions = []
+
+    def step(self, action):
+        self.actions.append(np.array(action))
+        return self.env.step(action)

@@ -3,6 +3,7 @@ one PPO update, the whole Cascade stack training (Section 3: older base nets sta
 normalization statistics of a discretized Box task carried across Cascade iterations (Appendix B.3) and used by
 the evaluations (Appendix B.5)."""
 
+import copy
 import dataclasses
 
 import gymnasium as gym
@@ -12,7 +13,9 @@ import torch
 
 import cascade_ppo_discrete as cpd
 import ppo_baseline_discrete as pbd
+from cascade_plumbing.discrete import EvaluationEpisodes
 from cascade_plumbing.envs import find_wrapper
+from helpers import ActionLog, RecordedEnvs
 
 SCRIPTS = [cpd, pbd]
 
@@ -163,6 +166,45 @@ def test_one_ppo_update_matches_a_plain_loop(script):
         for p, q in zip(net.parameters(), twin.parameters()):
             torch.testing.assert_close(p, q, rtol=1e-9, atol=1e-10)
     assert all(not torch.equal(p, p0) for p, p0 in zip(params, initial))  # the update did move everything
+
+
+# ----------------------------------------------------------------------------------------------
+# How the policy acts: samples of Categorical(logits) in rollouts and evaluations, the argmax only on request
+# ----------------------------------------------------------------------------------------------
+def test_rollouts_sample_the_policy(monkeypatch, tmp_path):
+    """A run's first rollout acts with samples of the initial, near-uniform policy (logits head gain 0.01): about
+    half of the actions are not its most probable one (a greedy rollout: none)."""
+    recorded, initial = [], []
+    make_vector_env = cpd.make_vector_env
+    monkeypatch.setattr(cpd, "make_vector_env", lambda *a: recorded.append(RecordedEnvs(make_vector_env(*a)))
+                        or recorded[-1])
+    args = cpd.Args(env_id="CartPole-v1", n=1, k=512, num_envs=1, num_steps=512, num_minibatches=4, update_epochs=1,
+                    eval_every=0, quiet=True, track_dir=str(tmp_path))
+    cpd.train(args, on_iteration_start=lambda state: initial.append(copy.deepcopy(state["actor"])))
+    envs, = recorded
+    with torch.no_grad():
+        logits = initial[0](torch.as_tensor(np.concatenate(envs.obs[:512])))[0]
+    greedy = (np.concatenate(envs.actions) == logits.argmax(-1).numpy()).mean()
+    assert 0.35 < greedy < 0.65, greedy
+
+
+def test_evaluations_sample_the_policy_unless_deterministic():
+    """The paper evaluates the stochastic policy (Appendix B.5): evaluation episodes sample Categorical(logits),
+    and take the argmax only with `deterministic` (--evaluate --deterministic). Both discrete scripts use this."""
+    episodes = EvaluationEpisodes("CartPole-v1", 16, seed=1, discretize=False)
+    episodes.envs = [ActionLog(env) for env in episodes.envs]
+
+    def policy(obs):  # both actions equally likely; the argmax of equal logits is action 0
+        return obs.new_zeros(len(obs), 2), None
+
+    for deterministic in (False, True):
+        for env in episodes.envs:
+            env.actions.clear()
+        episodes.run(policy, None, 0, deterministic)
+        actions = np.concatenate([env.actions for env in episodes.envs])
+        assert len(actions) > 100
+        assert (actions == 0).all() if deterministic else 0.35 < actions.mean() < 0.65, actions.mean()
+    episodes.close()
 
 
 # ----------------------------------------------------------------------------------------------

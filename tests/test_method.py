@@ -17,7 +17,7 @@ import torch
 
 import cascade_ppo_continuous as cpc
 import ppo_baseline
-from helpers import read_scalars
+from helpers import ActionLog, RecordedEnvs, read_scalars
 
 SCRIPTS = [cpc, ppo_baseline]
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
@@ -147,18 +147,6 @@ def test_evaluate_saved_returns_equal_a_direct_evaluation(module, deterministic,
     assert f"return {direct.mean():.1f} ± {direct.std():.1f} over {EVAL_EPISODES}" in printed, printed
     raw = evaluate_directly(module, "Hopper-v4", 7, actor, None, 0, deterministic)
     assert clearly_apart(raw.mean(), direct.mean()), (raw, direct)
-
-
-class ActionLog(gym.Wrapper):
-    """Keeps every action the env is stepped with."""
-
-    def __init__(self, env):
-        super().__init__(env)
-        self.actions = []
-
-    def step(self, action):
-        self.actions.append(np.array(action))
-        return self.env.step(action)
 
 
 @pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
@@ -291,31 +279,6 @@ def test_ppo_loss_matches_the_reference(module, settings):
     torch.testing.assert_close(parts["value_loss"], ref_v, rtol=1e-10, atol=1e-12)
     if "entropy" in parts:
         torch.testing.assert_close(parts["entropy"], ref_entropy, rtol=1e-10, atol=1e-12)
-
-
-class RecordedEnvs:
-    """The training envs, passed through, keeping what the loop is given and sends: every observation (as float32,
-    the loop's cast), action, reward and episode end."""
-
-    def __init__(self, envs):
-        self.envs, self.obs, self.actions, self.rewards, self.dones = envs, [], [], [], []
-
-    def __getattr__(self, name):
-        return getattr(self.envs, name)
-
-    def reset(self, **kwargs):
-        obs, info = self.envs.reset(**kwargs)
-        self.obs.append(obs.astype(np.float32))
-        self.dones.append(np.zeros(len(obs), np.float32))
-        return obs, info
-
-    def step(self, actions):
-        self.actions.append(np.array(actions, np.float32))
-        obs, reward, terminations, truncations, info = self.envs.step(actions)
-        self.obs.append(obs.astype(np.float32))
-        self.rewards.append(np.asarray(reward, np.float32))
-        self.dones.append(np.logical_or(terminations, truncations).astype(np.float32))
-        return obs, reward, terminations, truncations, info
 
 
 @pytest.mark.parametrize("autograd", [False, True], ids=["fast_paths", "autograd"])
