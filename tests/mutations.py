@@ -181,6 +181,7 @@ OFF_POLICY_LOOP_TESTS = ("tests/test_sac_ddpg.py::test_new_net_restarts_as_the_p
                          "tests/test_sac_ddpg.py::test_new_net_without_restart_keeps_targets_and_critic_optimizer",
                          "tests/test_sac_ddpg.py::test_keep_buffer_and_reset_critic_ablations")
 EXPLORATION_TEST = "tests/test_sac_ddpg.py::test_ddpg_explores_with_noise_scaled_to_the_bounds_and_clipped"
+EVALUATION_TEST = "tests/test_sac_ddpg.py::test_evaluations_act_as_the_papers_code_evaluates"
 MUTATIONS += [
     Mutation("sac: log-prob without the tanh correction", SAC,
              " - LOG_SQRT_2PI - torch.log(scale * (1 - y.pow(2)) + 1e-6)", " - LOG_SQRT_2PI", OFF_POLICY_TESTS),
@@ -204,6 +205,11 @@ MUTATIONS += [
     Mutation("ddpg: each net squashed before combining by default", DDPG,
              "squashed = torch.tanh((weight * mu).sum(0))", "squashed = (weight * torch.tanh(mu)).sum(0)",
              OFF_POLICY_TESTS),
+    Mutation("sac: evaluation with the squashed mean by default", SAC,
+             "return (mean_action if deterministic else sample), fallback",
+             "return (mean_action if not deterministic else sample), fallback", (EVALUATION_TEST,)),
+    Mutation("ddpg: evaluation without the exploration noise by default", DDPG,
+             "noise = 0.0 if args.eval_deterministic else args.exploration_noise", "noise = 0.0", (EVALUATION_TEST,)),
     Mutation("ddpg: exploration noise not scaled to the action range", DDPG, "actor.action_scale * noise)",
              "noise)", (EXPLORATION_TEST,)),
     Mutation("ddpg: actions not clipped to the bounds", DDPG, "return torch.maximum(torch.minimum(action, high), low)",

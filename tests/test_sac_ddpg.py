@@ -413,6 +413,54 @@ def test_ddpg_explores_with_noise_scaled_to_the_bounds_and_clipped(noise, tmp_pa
         assert ((0.5 < at_bound.mean(0)) & (at_bound.mean(0) < 0.75)).all(), at_bound.mean(0)
 
 
+class PolicyCatcher:
+    """Stands in for the run in the scripts' `evaluate`: keeps the policies it is asked to evaluate."""
+
+    def __init__(self):
+        self.policies = []
+
+    def evaluate(self, step, policy):
+        self.policies.append(policy)
+
+    def evaluate_members(self, step, policies):
+        self.policies.extend(policies)
+
+
+@pytest.mark.parametrize("deterministic", [False, True], ids=["default", "eval_deterministic"])
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+def test_evaluations_act_as_the_papers_code_evaluates(algo, deterministic):
+    """The policies `evaluate` hands to the evaluation episodes, the whole cascade's and each net's alone: by
+    default SAC samples its squashed Gaussian and DDPG keeps its exploration noise (std 0.1 x half range), as the
+    paper's code evaluates; with --eval-deterministic, the squashed mean and the noise-free action."""
+    mod = SCRIPTS[algo]
+    torch.manual_seed(0)
+    actor = mod.CascadeActor(5, 3, 7, 2, 0.5, np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 3.0]))
+    for _ in range(2):
+        actor.add_base_net()  # at its init: actions well inside the bounds, so the noise is rarely clipped
+    catcher = PolicyCatcher()
+    args = mod.Args(eval_deterministic=deterministic)
+    mod.evaluate(catcher, actor, args, 0)
+    mod.evaluate(catcher, actor, args, 0, members=True)
+    assert len(catcher.policies) == 3
+    obs = torch.randn(1, 5).expand(4000, 5)  # one state, 4000 draws
+    generator = torch.Generator().manual_seed(1)
+    scale, bias = actor.action_scale, actor.action_bias
+    with torch.no_grad():
+        for kind, policy in enumerate(catcher.policies):  # the cascade, then net 1 and net 2 alone
+            action = policy(obs, generator)[0]
+            if algo == "sac":
+                mean, log_std = actor(obs)[:2] if kind == 0 else actor.member(obs, kind - 1)
+                centre = torch.tanh(mean) * scale + bias
+                z = (torch.atanh((action - bias) / scale) - mean) / log_std.exp()
+            else:
+                centre = actor(obs)[0] if kind == 0 else actor.member(obs, kind - 1)
+                z = (action - centre) / (args.exploration_noise * scale)
+            if deterministic:
+                torch.testing.assert_close(action, centre, rtol=0, atol=1e-6)
+            else:
+                assert abs(z.mean()) < 0.1 and 0.9 < z.std() < 1.1, (kind, z.mean(), z.std())
+
+
 def test_replay_buffer_wraps_and_clears():
     buffer = cs.ReplayBuffer(4, 2, 1)
     for i in range(6):
