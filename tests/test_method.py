@@ -284,11 +284,12 @@ def test_ppo_loss_matches_the_reference(module, settings):
 @pytest.mark.parametrize("autograd", [False, True], ids=["fast_paths", "autograd"])
 @pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
 def test_one_whole_update_matches_the_references(module, autograd, monkeypatch, tmp_path):
-    """The last update of a real run (Cascade: the first of its second net) against the plain references of this
-    file, in float64; one rollout, one epoch, one minibatch of the whole rollout: the rollout's actions are samples of the policy, the old log-probs,
-    values, GAE and returns are built from the rollout, and the parameters move by the gradient of the reference
-    loss, clipped to the global norm, times the learning rate. SGD replaces Adam here (its first step is about
-    lr * sign(gradient) and would hide a wrong term); the clip and the annealed rate are the scripts' own."""
+    """The last update of a real run (Cascade's: the first of its second net) against the plain references of this
+    file, in float64, with one rollout, one epoch and one minibatch of the whole rollout: the rollout's actions are
+    samples of the policy, and the old log-probs, values, GAE and returns built from the recorded rollout move the
+    parameters by the reference loss's gradient, clipped to the global norm, times the learning rate (an
+    iteration's first update runs at --learning-rate). SGD replaces Adam here: Adam's first step is about
+    lr * sign(gradient) and would hide a wrong term."""
     recorded, initial = [], []
     make_vector_env, share_one_buffer = module.make_vector_env, module.share_one_buffer
     monkeypatch.setattr(module, "make_vector_env", lambda args: recorded.append(RecordedEnvs(make_vector_env(args)))
