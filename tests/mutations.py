@@ -26,6 +26,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FLAGSHIP, FAST, DISCRETE = "cascade_ppo_continuous.py", "cascade_plumbing/fast.py", "cascade_ppo_discrete.py"
 SAC, DDPG = "cascade_sac.py", "cascade_ddpg.py"
+OPTIMIZER_RATES_TEST = "tests/test_sac_ddpg.py::test_each_optimizer_runs_at_its_learning_rate"
 # the independent references (a plain loop over the nets, CleanRL's formulas, autograd) first; then the hacking
 # tests, which also fail when section 1 and the fast paths no longer agree
 FLAGSHIP_TESTS = ("tests/test_cascade_net.py", "tests/test_method.py", "tests/test_gradients.py", "tests/test_hacking.py")
@@ -159,6 +160,23 @@ MUTATIONS = [
              DISCRETE_TESTS),
     Mutation("discrete loop: evaluation acts greedily", "cascade_plumbing/discrete.py", "if deterministic:\n",
              "if True:\n", DISCRETE_TESTS),
+    # found by an independent probe (2026-12-03): planted by a helper that did not see this list; missed until
+    # the tests named here were written
+    Mutation("discrete loop: --lr-schedule global one iteration ahead", DISCRETE,
+             "frac = 1.0 - ((iteration - 1) * updates_per_iteration + update - 1.0) / total_updates",
+             "frac = 1.0 - (iteration * updates_per_iteration + update - 1.0) / total_updates",
+             ("tests/test_discrete.py::test_learning_rate_schedules",)),
+    Mutation("discrete: a resumed actor forgets its frozen nets", DISCRETE,
+             '    actor.freeze_below(checkpoint["num_frozen"])\n', "",
+             ("tests/test_checkpoints.py::test_freeze_previous_survives_a_resume",)),
+    Mutation("flagship loop: a resumed actor forgets its frozen nets", FLAGSHIP,
+             '    actor.freeze_below(checkpoint["num_frozen"])\n', "",
+             ("tests/test_checkpoints.py::test_freeze_previous_survives_a_resume",)),
+    Mutation("ddpg: the critic's learning rate not annealed", DDPG,
+             'q_optimizer.param_groups[0]["lr"] = actor_optimizer.param_groups[0]["lr"] = lr_now',
+             'actor_optimizer.param_groups[0]["lr"] = lr_now', (OPTIMIZER_RATES_TEST,)),
+    Mutation("sac: the actor at --q-lr", SAC, "actor_optimizer = make_adam(list(actor.parameters()), args.policy_lr)",
+             "actor_optimizer = make_adam(list(actor.parameters()), args.q_lr)", (OPTIMIZER_RATES_TEST,)),
     # SAC only
     Mutation("sac: max of the twin targets", SAC, "qf_target(b_next_obs, next_actions).min(0).values",
              "qf_target(b_next_obs, next_actions).max(0).values", OFF_POLICY_TESTS),

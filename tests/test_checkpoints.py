@@ -1,6 +1,7 @@
 """Long runs you can trust: atomic checkpoints, exact resume, saved-model evaluation, member returns, NaN guard."""
 
 import hashlib
+import importlib
 import os
 import shutil
 import signal
@@ -114,6 +115,22 @@ def test_resume_mid_iteration_gives_identical_parameters(tmp_path):
     resumed = resume_from(cpc, tmp_path / "mid.pt", tmp_path / "b")
     for a, b in zip(full["actor"].parameters(), resumed["actor"].parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("script", ["cascade_ppo_continuous", "cascade_ppo_discrete"])
+def test_freeze_previous_survives_a_resume(script, tmp_path):
+    """--freeze-previous: the actor a checkpoint restores keeps the older nets frozen (a resume mid-iteration
+    must not train them); both checkpoints of a 2-net run, with the frozen count of their iteration."""
+    module = importlib.import_module(script)
+    env = dict(env_id="Hopper-v4", num_steps=256) if module is cpc else dict(env_id="CartPole-v1", num_envs=1,
+                                                                               num_steps=256)
+    args = module.Args(n=2, k=512, num_minibatches=4, update_epochs=1, freeze_previous=True, eval_every=0,
+                       checkpoint_every=256, quiet=True, track_dir=str(tmp_path), **env)
+    run_dir = module.train(args)["run_dir"]
+    for iteration, frozen in [(1, 0), (2, 1)]:
+        checkpoint = module.load_checkpoint(os.path.join(run_dir, f"iteration_{iteration}.pt"))
+        assert checkpoint["num_frozen"] == frozen
+        assert module.actor_from_checkpoint(checkpoint).num_frozen == frozen
 
 
 def test_saved_model_acts_like_the_live_policy(finished_run):

@@ -182,6 +182,16 @@ def test_each_iteration_gets_fresh_critic_and_optimizer(tmp_path, capsys):
     assert all(s["optimized"] == s["model_numel"] for s in seen)
 
 
+@pytest.mark.parametrize("schedule,expected", [("cyclic", [2.5e-4, 2.5e-4, 2.5e-4]),
+                                               ("global", [2.5e-4, 2.5e-4 * 2 / 3, 2.5e-4 / 3])])
+def test_learning_rate_schedules(schedule, expected, tmp_path):
+    """cyclic: each net's iteration restarts at the full rate; global (Fig. 12): one linear decay over the run."""
+    args = cpd.Args(env_id="CartPole-v1", n=3, k=512, lr_schedule=schedule, eval_every=0, quiet=True,
+                    track_dir=str(tmp_path), **TINY)  # one 512-step update per iteration
+    scalars = read_scalars(cpd.train(args)["run_dir"])
+    np.testing.assert_allclose([v for _, v in scalars["charts/learning_rate"]], expected, rtol=1e-5)
+
+
 def test_cascade_discretized_hopper_run_writes_expected_scalars(tmp_path, capsys):
     code, out, error = cli_in_process(capsys, "cascade_ppo_discrete.py", "--env-id", "Hopper-v4", "--n", "3", "--k",
                                       "1024", "--update-epochs", "2", "--eval-every", "1024", "--eval-episodes", "2",

@@ -273,6 +273,23 @@ def test_new_net_without_restart_keeps_targets_and_critic_optimizer(algo, tmp_pa
 
 
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
+def test_each_optimizer_runs_at_its_learning_rate(algo, tmp_path):
+    """SAC: the actor at --policy-lr, the critics and alpha at --q-lr. DDPG: actor and critic at --learning-rate,
+    both annealed linearly to 0 within each iteration: at an iteration's last step, (1 - (k - 1) / k) x the rate."""
+    mod = SCRIPTS[algo]
+    rates = dict(policy_lr=2e-4, q_lr=7e-4, autotune=True) if algo == "sac" else dict(learning_rate=6e-4)
+    seen, _, _, _, _ = run_with_hook(mod, tmp_path, **rates)
+    last = seen[-1]
+    lr = {name: last[name].param_groups[0]["lr"] for name in ("actor_optimizer", "q_optimizer", "a_optimizer")
+          if name in last}
+    if algo == "sac":
+        assert lr == {"actor_optimizer": 2e-4, "q_optimizer": 7e-4, "a_optimizer": 7e-4}
+    else:
+        end = pytest.approx(6e-4 * (1 - (TINY["k"] - 1) / TINY["k"]))
+        assert lr == {"actor_optimizer": end, "q_optimizer": end}
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
 def test_keep_buffer_and_reset_critic_ablations(algo, tmp_path):
     mod = SCRIPTS[algo]
     seen, first, _, result, _ = run_with_hook(mod, tmp_path / "keep", keep_buffer=True)
