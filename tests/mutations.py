@@ -5,7 +5,7 @@ bug in the method the suite would let through.
     python tests/mutations.py                 # every mutation (~10 min on 2 cores)
     python tests/mutations.py --only sac      # the mutations whose name contains "sac"
 
-Each mutation replaces one exact line (or part of one) of a script or of `cascade_plumbing/fast.py`; the
+Each mutation replaces one exact line (or part of one) of a script, of `cascade_plumbing/`, `plots/` or `sweep.py`; the
 unmutated copy is run first and must pass, so that a caught mutation is caught by the tests, not by an
 already-failing one. Not part of the suite (pytest collects test_*.py only): it runs the suite's files many
 times over. Exits 1 if any mutation is missed or no longer applies (the line it edits was changed: update it).
@@ -239,6 +239,55 @@ MUTATIONS += [Mutation(f"{label} loop: {name}", script, old, new, OFF_POLICY_LOO
                    "random_action = global_step <= args.learning_starts"),
                   ("a fresh critic without --reset-critic", "if args.reset_critic:  # the ablation",
                    "if True:  # the ablation"))]
+# outside the algorithm: what turns runs into the numbers users read (plots/, sweep.py, the shared package's
+# logging and resume, the baselines' LR cycle)
+PLOTS_TEST, SWEEP_TEST = "tests/test_plots.py::", "tests/test_sweep.py::"
+RESUME_LOG_TEST = "tests/test_checkpoints.py::test_a_run_resumed_in_its_folder_logs_every_step_and_keeps_its_clock"
+MUTATIONS += [
+    Mutation("plots: a per-env IQM CI over envs, not seeds (zero width)", "plots/final_performance.py",
+             "interval_estimate(s[:, None], metrics.aggregate_iqm", "interval_estimate(s[None, :], metrics.aggregate_iqm",
+             (PLOTS_TEST + "test_final_performance_over_several_envs_and_ten_seeds",)),
+    Mutation("plots: a relaunched seed kept for being newer, though it stopped early", "plots/common.py",
+             "if (run.last_step(), run.timestamp) > (kept.last_step(), kept.timestamp):",
+             "if run.timestamp > kept.timestamp:",
+             (PLOTS_TEST + "test_a_relaunch_that_stopped_early_does_not_replace_the_finished_run",)),
+    Mutation("plots: exported per-update scalars one log entry behind", "plots/export_results.py",
+             'np.searchsorted(series.steps, at, side="right") - 1', 'np.searchsorted(series.steps, at, side="left") - 1',
+             (PLOTS_TEST + "test_exported_runs_hold_what_the_figures_read",)),
+    Mutation("plots: P(PPO > Cascade) reported as P(Cascade > PPO)", "plots/reproduce.py",
+             'probability_of_improvement(np.asarray(scores["Cascade"])[:, None],\n'
+             '                                                         np.asarray(scores["PPO"])[:, None])',
+             'probability_of_improvement(np.asarray(scores["PPO"])[:, None],\n'
+             '                                                         np.asarray(scores["Cascade"])[:, None])',
+             (PLOTS_TEST + "test_reproduction_rebuilds_from_the_committed_sample",)),
+    Mutation("plots: Fig. 2's final scores from the last evaluation only", "plots/reproduce.py",
+             'baseline="ppo", final_window=args.final_window,', 'baseline="ppo",',
+             (PLOTS_TEST + "test_reproduction_rebuilds_from_the_committed_sample",)),
+    Mutation("sweep: --cycle-steps not scaled with the budget", "sweep.py",
+             'BUDGET_FLAGS = ("--k", "--total-timesteps", "--cycle-steps")', 'BUDGET_FLAGS = ("--k", "--total-timesteps")',
+             (SWEEP_TEST + "test_every_preset_expands_to_the_papers_grid",
+              SWEEP_TEST + "test_scale_scales_the_checkpoint_cadence")),
+    Mutation("sweep: a resume loses the flags after --track-dir", "sweep.py",
+             "*command[2:at], *command[at + 2 :]]", "*command[2:at], command[at + 2]]",
+             (SWEEP_TEST + "test_unfinished_run_resumes_from_its_own_checkpoint_only",)),
+    Mutation("plumbing: a resume hides the checkpoint step's scalars", "cascade_plumbing/record.py",
+             'purge_step=checkpoint["global_step"] + 1)', 'purge_step=checkpoint["global_step"])', (RESUME_LOG_TEST,)),
+    Mutation("plumbing: a resumed run's clock restarts", "cascade_plumbing/record.py",
+             'self.start_time = time.time() - checkpoint["elapsed"]', "self.start_time = time.time()",
+             (RESUME_LOG_TEST,)),
+    Mutation("plumbing: observation statistics left out of checkpoints", "cascade_plumbing/envs.py",
+             "np.random.Generator, RunningMeanStd, collections.deque)", "np.random.Generator, collections.deque)",
+             ("tests/test_checkpoints.py::test_resume_at_iteration_boundary_gives_identical_parameters",)),
+    Mutation("baseline: an LR cycle counted in rollouts of one env", "ppo_baseline.py",
+             "updates_per_cycle = max(args.cycle_steps // batch_size, 1)",
+             "updates_per_cycle = max(args.cycle_steps // args.num_steps, 1)",
+             ("tests/test_papers_code.py::test_cyclic_baseline_restarts_adam_every_cycle",)),
+    Mutation("discrete baseline: a new cycle's Adam over the actor only", "ppo_baseline_discrete.py",
+             "optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)\n"
+             "        else:",
+             "optimizer = make_optimizer([*actor.parameters()], args.learning_rate)\n        else:",
+             ("tests/test_papers_code.py::test_cyclic_discrete_baseline_restarts_adam_every_cycle",)),
+]
 
 
 @dataclasses.dataclass
@@ -250,8 +299,10 @@ class Args:
 
 
 def copy_repository(destination: str) -> None:
+    """The code and tests, without runs or results (but with results/sample, which tests/test_plots.py reads)."""
     shutil.copytree(ROOT, destination, ignore=shutil.ignore_patterns(
         ".git", ".venv", "sweeps", "runs", "results", "videos", "wandb", "__pycache__", "*.egg-info"))
+    shutil.copytree(os.path.join(ROOT, "results", "sample"), os.path.join(destination, "results", "sample"))
 
 
 def run_tests(folder: str, tests: tuple[str, ...]) -> tuple[bool, str]:

@@ -106,6 +106,31 @@ def test_resume_at_iteration_boundary_gives_identical_parameters(finished_run, t
     assert [s for s, _ in scalars["eval/episodic_return"]] == [1536, 2048]
 
 
+def test_a_run_resumed_in_its_folder_logs_every_step_and_keeps_its_clock(finished_run, tmp_path):
+    """A run killed after its iteration-1 checkpoint (it had logged up to step 2048), resumed in its own folder:
+    TensorBoard shows what the killed run logged up to the checkpoint's step and the resumed run's logs after
+    it, the steps of an uninterrupted run. (The new net's cascade/size and cascade/parameters, logged at the
+    checkpoint's step just after it was saved, appear twice there, with the same value.) The clock goes on from
+    the checkpoint's elapsed time."""
+    killed = tmp_path / os.path.basename(finished_run["run_dir"])
+    shutil.copytree(finished_run["run_dir"], killed)
+    os.remove(killed / "iteration_2.pt")
+    checkpoint = torch.load(killed / "iteration_1.pt", weights_only=False)
+    assert checkpoint["global_step"] == 1024
+    checkpoint["elapsed"] = 1000.0  # as if the first iteration had taken 1000 s
+    torch.save(checkpoint, killed / "checkpoint.pt")
+    checkpoint = cpc.load_checkpoint(str(killed))
+    cpc.train(cpc.Args(**checkpoint["args"]), checkpoint)
+    uninterrupted, resumed = read_scalars(finished_run["run_dir"]), read_scalars(str(killed))
+    assert uninterrupted.keys() == resumed.keys()
+    for tag, entries in uninterrupted.items():
+        assert sorted({step for step, _ in resumed[tag]}) == sorted({step for step, _ in entries}), tag
+    for step, value in resumed["eval/episodic_return"]:  # the resume is exact: the same evaluations
+        assert value == pytest.approx(dict(uninterrupted["eval/episodic_return"])[step], rel=1e-6)
+    assert cpc.load_checkpoint(str(killed))["elapsed"] > 1000.0
+    assert all(sps < 2048 / 1000 for step, sps in resumed["charts/SPS"] if step > 1024)
+
+
 def test_resume_mid_iteration_gives_identical_parameters(tmp_path):
     # keep a copy of the checkpoint written after update 2 of 4 of iteration 2, resume from it
     args = cpc.Args(track_dir=str(tmp_path / "a"), checkpoint_every=256, **BASE)

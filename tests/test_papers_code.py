@@ -224,15 +224,21 @@ def test_discrete_start_full_keeps_one_critic(tmp_path):
 def test_cyclic_discrete_baseline_restarts_adam_every_cycle(tmp_path):
     args = pbd.Args(env_id="CartPole-v1", total_timesteps=2048, num_envs=2, num_steps=128, lr_schedule="cyclic",
                     cycle_steps=1024, eval_every=0, quiet=True, track_dir=str(tmp_path))
-    checkpoint = pbd.load_checkpoint(pbd.train(args)["run_dir"])
-    # the last cycle's 4 updates x 4 epochs x 4 minibatches, not both cycles' 128
+    result = pbd.train(args)
+    checkpoint = pbd.load_checkpoint(result["run_dir"])
+    # the last cycle's 4 updates x 4 epochs x 4 minibatches, not both cycles' 128, for the actor and the critic
     assert {int(s["step"]) for s in checkpoint["optimizer"]["state"].values()} == {4 * 4 * 4}
+    n_tensors = len([*result["actor"].parameters(), *result["critic"].parameters()])
+    assert len(checkpoint["optimizer"]["state"]) == n_tensors
 
 
-def test_cyclic_baseline_restarts_adam_every_cycle(tmp_path):
-    """The paper's code ran Fig. 3's baseline as a new PPO instance per cycle (the nets kept): Adam restarts."""
-    args = pb.Args(env_id="Hopper-v4", total_timesteps=2048, num_steps=256, num_minibatches=4, update_epochs=2,
-                   lr_schedule="cyclic", cycle_steps=1024, eval_every=0, quiet=True, track_dir=str(tmp_path))
+@pytest.mark.parametrize("num_envs", [1, 2])
+def test_cyclic_baseline_restarts_adam_every_cycle(num_envs, tmp_path):
+    """The paper's code ran Fig. 3's baseline as a new PPO instance per cycle (the nets kept): Adam restarts.
+    A cycle is --cycle-steps env steps over all envs (4 rollouts of 256 steps here, from 1 or 2 envs)."""
+    args = pb.Args(env_id="Hopper-v4", total_timesteps=2048, num_envs=num_envs, num_steps=256 // num_envs,
+                   num_minibatches=4, update_epochs=2, lr_schedule="cyclic", cycle_steps=1024, eval_every=0,
+                   quiet=True, track_dir=str(tmp_path))
     result = pb.train(args)
     checkpoint = pb.load_checkpoint(result["run_dir"])
     steps = {int(s["step"]) for s in checkpoint["optimizer"]["state"].values()}

@@ -1,6 +1,7 @@
 """plots/: figures and tables from tiny real runs, numbers checked against the logged scalars read independently."""
 
 import csv
+import dataclasses
 import os
 import shutil
 import subprocess
@@ -98,6 +99,21 @@ def test_a_relaunched_seed_counts_once(runs, tmp_path, capsys):
     learning_curves.main(learning_curves.Args(runs=(str(track),), out=str(tmp_path / "out")))
     assert {r["seeds"] for r in read_csv(tmp_path / "out" / "learning_curves.csv")} == {"2"}
     assert f"using {relaunch}" in capsys.readouterr().err
+
+
+def test_a_relaunch_that_stopped_early_does_not_replace_the_finished_run(tmp_path, capsys):
+    """Two runs of one seed: the longer counts, even when the shorter was started later (a relaunch that was
+    killed); of two equally long ones, the newer."""
+    root = tmp_path / "runs"
+    finished = write_fake_run(root, "Hopper-v4__ppo_baseline__1__1700000000", [0, 4096, 8192], 100.0)
+    write_fake_run(root, "Hopper-v4__ppo_baseline__1__1800000000", [0, 4096], 5000.0)  # relaunched, killed
+    write_fake_run(root, "Hopper-v4__ppo_baseline__2__1700000000", [0, 4096, 8192], 300.0)
+    write_fake_run(root, "Hopper-v4__ppo_baseline__2__1800000000", [0, 4096, 8192], 200.0)  # relaunched, finished
+    final_performance.main(final_performance.Args(runs=(str(root),), out=str(tmp_path / "out"),
+                                                  baseline="ppo_baseline", reps=50))
+    assert f"using {os.path.basename(finished)}, not Hopper-v4__ppo_baseline__1__1800000000" in capsys.readouterr().err
+    (row,) = read_csv(tmp_path / "out" / "final_performance.csv")
+    assert (row["seeds"], float(row["mean"])) == ("2", 150.0), row
 
 
 # The statistics of plots/final_performance.py, written out in numpy: the cross-check of what rliable computes there.
@@ -226,6 +242,11 @@ def test_final_performance_over_several_envs_and_ten_seeds(tmp_path):
     for env in ("Hopper-v4", "Walker2d-v4"):
         scores = np.sort(finals[(env, "cascade_ppo_continuous")])
         assert float(rows[(env, "Cascade")]["iqm"]) == pytest.approx(scores[2:8].mean())  # 10 seeds: drop 2 + 2
+        # its CI bootstraps the 10 seeds (measured within 0.07 of the reference's width at 300 replicates)
+        boot = reference_bootstrap([scores], lambda rs: reference_iqm(rs[0]), 20_000, np.random.default_rng(1))
+        low, high = reference_ci(boot, 0.95)
+        ci = float(rows[(env, "Cascade")]["iqm_ci_low"]), float(rows[(env, "Cascade")]["iqm_ci_high"])
+        assert np.allclose(ci, (low, high), atol=0.2 * (high - low)), (ci, (low, high))
         poi = np.mean([(c > p) + 0.5 * (c == p) for c in finals[(env, "cascade_ppo_continuous")]
                        for p in finals[(env, "ppo_baseline")]])
         assert float(rows[(env, "Cascade")]["p_improvement"]) == pytest.approx(poi)
@@ -407,6 +428,72 @@ def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
     summary = open(tmp_path / "summary.md").read()
     row = next(line for line in summary.splitlines() if line.startswith("| Hopper-v4 |"))
     assert f"{np.mean(scores['cascade']):.0f} ± " in row and f"{np.mean(scores['ppo']):.0f} ± " in row, row
+    better = np.mean([(c > p) + 0.5 * (c == p) for c in scores["cascade"] for p in scores["ppo"]])
+    assert better != 0.5 and f"| {better:.2f} |" in row, row  # P(Cascade > PPO), not P(PPO > Cascade)
+    # final_performance's scores too: each run's last 3 evaluations (the sample's last evaluation differs)
+    rows = {r["experiment"]: r for r in read_csv(tmp_path / "final_performance.csv")}
+    assert float(rows["Cascade"]["mean"]) == pytest.approx(np.mean(scores["cascade"]), rel=1e-6)
+    assert float(rows["PPO"]["mean"]) == pytest.approx(np.mean(scores["ppo"]), rel=1e-6)
+
+
+def test_exported_runs_hold_what_the_figures_read(runs, tmp_path, capsys):
+    """plots/export_results.py: every evaluation, member return and fallback std in full; the per-update scalars
+    the figures read as the last value logged at or before each evaluation step; the settings, the commit and
+    the training time. The plots read the exported files as they read the run folders."""
+    import json
+
+    from plots import export_results
+
+    out = tmp_path / "per_run"
+    written = export_results.main(export_results.Args(runs=[runs["track"]], out=str(out), commit="0123abc"))
+    run_dirs = runs["cascade"] + runs["baseline"]
+    assert sorted(written) == sorted(str(out / f"{os.path.basename(d)}.json") for d in run_dirs)
+    for run_dir in run_dirs:
+        data = json.load(open(out / f"{os.path.basename(run_dir)}.json"))
+        assert (data["commit"], data["final_step"], data["hparams"]["seed"]) == ("0123abc", 2048, data["name"].split("__")[2])
+        elapsed = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)["elapsed"]
+        assert data["seconds"] == pytest.approx(elapsed)
+        logged = read_scalars(run_dir)
+        evaluations = [step for step, _ in logged["eval/episodic_return"]]
+        for tag, entries in logged.items():
+            if tag.startswith(("eval/", "members/", "cascade/fallback_std/")):
+                expected = entries
+            elif tag.startswith(("cascade/fallback/", "cascade/contribution/", "cascade/fallback_product",
+                                 "cascade/size", "cascade/parameters", "charts/parameters", "charts/SPS")):
+                expected = []
+                for at in evaluations:
+                    before = [value for step, value in entries if step <= at]
+                    if before:
+                        expected.append((at, before[-1]))
+                assert len(expected) > 1 and any(step in evaluations for step, _ in entries), tag
+            else:
+                assert tag not in data["scalars"], tag
+                continue
+            exported = data["scalars"][tag]
+            assert exported["steps"] == [step for step, _ in expected], tag
+            assert exported["values"] == pytest.approx([value for _, value in expected], rel=1e-6), tag
+    for script, extra in ((learning_curves, {}), (final_performance, {"reps": 100})):  # the files read as the folders
+        for source, name in ((runs["track"], "folders"), (str(out), "files")):
+            script.main(script.Args(runs=(source,), out=str(tmp_path / name), **extra))
+        table = os.path.basename(script.__file__).replace(".py", ".csv")
+        assert read_csv(tmp_path / "files" / table) == read_csv(tmp_path / "folders" / table), table
+    # existing files are kept (--overwrite rewrites them); an unfinished run is left out (--allow-incomplete)
+    assert export_results.main(export_results.Args(runs=[runs["track"]], out=str(out))) == []
+    assert len(export_results.main(export_results.Args(runs=[runs["track"]], out=str(out), overwrite=True))) == 4
+    from torch.utils.tensorboard import SummaryWriter
+
+    killed = tmp_path / "killed" / "Hopper-v4__ppo_baseline__3__1700000000"
+    writer = SummaryWriter(str(killed))
+    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n|num_envs|1|\n|num_steps|2048|\n"
+                                       "|total_timesteps|1000000|\n|seed|3|")
+    for step in (0, 500_000):
+        writer.add_scalar("eval/episodic_return", 1.0, step)
+    writer.close()
+    args = export_results.Args(runs=[str(killed.parent)], out=str(tmp_path / "killed_out"))
+    capsys.readouterr()
+    assert export_results.main(args) == []
+    assert "evaluated up to step 500,000 of 999,424 (unfinished)" in capsys.readouterr().err
+    assert len(export_results.main(dataclasses.replace(args, allow_incomplete=True))) == 1
 
 
 def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):

@@ -28,7 +28,7 @@ def test_every_preset_expands_to_the_papers_grid(preset):
         assert os.path.isfile(os.path.join(ROOT, run.script)) or run.script in ("cascade_sac.py", "cascade_ddpg.py")
         command = run.command(sys.executable, "/tmp/none")
         assert command[command.index("--exp-name") + 1] == run.label
-        for flag in sweep.BUDGET_FLAGS:
+        for flag in ("--k", "--total-timesteps", "--cycle-steps"):  # the budgets in env steps (Fig. 3's cycle too)
             if flag in run.flags:  # budgets scaled by 0.01, never below one rollout
                 original = dict(zip(*[iter(dict((lab, f) for lab, _, f in entries)[run.label].split())] * 2))
                 assert int(run.flags[run.flags.index(flag) + 1]) == max(round(int(original[flag]) * 0.01), 2048)
@@ -65,6 +65,9 @@ def test_scale_scales_the_checkpoint_cadence():
     explicit = one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 0", 0.01)
     assert explicit.flags[-2:] == ["--checkpoint-every", "0"] and explicit.cadence == []
     assert one("ppo_baseline.py --total-timesteps=6000000", 0.01).flags == ["--total-timesteps=60000"]
+    # Fig. 3's LR cycle shrinks with the run it divides (6 cycles either way)
+    assert one("ppo_baseline.py --total-timesteps 6000000 --cycle-steps 1000000", 0.01).flags == \
+        ["--total-timesteps", "60000", "--cycle-steps", "10000"]
 
 
 def test_paper_settings_in_presets():
@@ -76,7 +79,9 @@ def test_paper_settings_in_presets():
 
 
 def test_unfinished_run_resumes_from_its_own_checkpoint_only(tmp_path):
-    run = sweep.Run("cascade", "cascade_ppo_continuous.py", ["--n", "2"], "Hopper-v4", 3)
+    run = sweep.Run("cascade", "cascade_ppo_continuous.py", ["--n", "2"], "Hopper-v4", 3,
+                    cadence=["--checkpoint-every", "2048"])
+    tracking = ["--track", "--wandb-project-name", "cascade"]
     assert "--resume" not in run.command("python", str(tmp_path))
     # another setup's checkpoint (other flags, same env/label/seed) is never picked up
     other = sweep.Run("cascade", "cascade_ppo_continuous.py", ["--n", "3"], "Hopper-v4", 3)
@@ -88,10 +93,12 @@ def test_unfinished_run_resumes_from_its_own_checkpoint_only(tmp_path):
     own = tmp_path / run.run_id / "Hopper-v4__cascade__3__1790000001"
     own.mkdir(parents=True)
     (own / "checkpoint.pt").write_bytes(b"x")
-    command = run.command("python", str(tmp_path))
+    command = run.command("python", str(tmp_path), tracking)
     assert command[2:4] == ["--resume", str(own)]
-    # the resume repeats every flag, so the script itself refuses a checkpoint saved with other settings
-    assert command[4:] == ["--n", "2", "--env-id", "Hopper-v4", "--seed", "3", "--exp-name", "cascade", "--quiet"]
+    # the resume repeats every flag, so the script itself refuses a checkpoint saved with other settings; the
+    # checkpoint cadence and the tracking go on as they were (only --track-dir goes: the run keeps its folder)
+    assert command[4:] == ["--n", "2", "--env-id", "Hopper-v4", "--seed", "3", "--exp-name", "cascade", "--quiet",
+                           "--checkpoint-every", "2048", *tracking]
 
 
 def test_rerun_with_other_budget_starts_a_new_run(tmp_path):
