@@ -167,6 +167,34 @@ class RecordedEnvs:
         return obs, reward, terminations, truncations, info
 
 
+class ObservationLog(gym.Wrapper):
+    """Keeps every raw observation the env returns (from reset and step)."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.observations = []
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.observations.append(np.array(obs))
+        return obs, info
+
+    def step(self, action):
+        obs, *rest = self.env.step(action)
+        self.observations.append(np.array(obs))
+        return (obs, *rest)
+
+
+def assert_rows_are_normalized_observations(rows, envs, mean, var):
+    """Each row a policy was given is one raw observation the envs returned, as the training wrappers leave it
+    (NormalizeObservation with statistics (mean, var), then clipped to +-10). Evaluation batches the running envs'
+    observations in an order the test need not know: each row is looked up among all of them."""
+    raw = np.concatenate([np.stack(env.observations) for env in envs])
+    expected = np.clip((raw - mean) / np.sqrt(var + 1e-8), -10, 10)
+    for row in rows:
+        assert np.isclose(expected, row, rtol=1e-5, atol=1e-5).all(1).any(), row
+
+
 class ActionLog(gym.Wrapper):
     """Keeps every action the env is stepped with."""
 

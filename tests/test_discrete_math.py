@@ -15,7 +15,7 @@ import cascade_ppo_discrete as cpd
 import ppo_baseline_discrete as pbd
 from cascade_plumbing.discrete import EvaluationEpisodes
 from cascade_plumbing.envs import find_wrapper
-from helpers import ActionLog, RecordedEnvs
+from helpers import ActionLog, ObservationLog, RecordedEnvs, assert_rows_are_normalized_observations
 
 SCRIPTS = [cpd, pbd]
 
@@ -194,8 +194,8 @@ def test_evaluations_sample_the_policy_unless_deterministic():
     episodes = EvaluationEpisodes("CartPole-v1", 16, seed=1, discretize=False)
     episodes.envs = [ActionLog(env) for env in episodes.envs]
 
-    def policy(obs):  # both actions equally likely; the argmax of equal logits is action 0
-        return obs.new_zeros(len(obs), 2), None
+    def policy(obs):  # action 1 with probability 3/4 (the argmax), whatever the observation and batch size
+        return obs.new_tensor([0.0, np.log(3.0)]).expand(len(obs), 2), None
 
     for deterministic in (False, True):
         for env in episodes.envs:
@@ -203,8 +203,30 @@ def test_evaluations_sample_the_policy_unless_deterministic():
         episodes.run(policy, None, 0, deterministic)
         actions = np.concatenate([env.actions for env in episodes.envs])
         assert len(actions) > 100
-        assert (actions == 0).all() if deterministic else 0.35 < actions.mean() < 0.65, actions.mean()
+        # sampled: about 3/4 (0.72-0.84 over 20 seeds; a softmax over the batch axis samples 1/2)
+        assert (actions == 1).all() if deterministic else 0.6 < actions.mean() < 0.92, actions.mean()
     episodes.close()
+
+
+def test_evaluations_see_observations_as_training_does():
+    """Evaluation episodes normalize each raw observation with the frozen statistics and clip it to +-10, as the
+    training wrappers do: checked against the raw observations the evaluation envs returned."""
+    rows = []
+
+    def policy(obs):
+        rows.extend(obs.numpy())
+        return obs.new_zeros(len(obs), 2), None
+
+    mean = np.array([0.1, -0.2, 0.05, 0.3])
+    for var in (np.full(4, 4.0), np.full(4, 1e-4)):  # the second puts many components beyond the clip
+        rows.clear()
+        episodes = EvaluationEpisodes("CartPole-v1", 4, seed=1, discretize=False)
+        episodes.envs = [ObservationLog(env) for env in episodes.envs]
+        episodes.run(policy, (mean, var), 0, False)
+        episodes.close()
+        assert len(rows) > 10
+        assert_rows_are_normalized_observations(rows, episodes.envs, mean, var)
+    assert np.mean(np.abs(rows) == 10) > 0.1  # the clip did act
 
 
 # ----------------------------------------------------------------------------------------------

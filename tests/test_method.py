@@ -17,7 +17,7 @@ import torch
 
 import cascade_ppo_continuous as cpc
 import ppo_baseline
-from helpers import ActionLog, RecordedEnvs, read_scalars
+from helpers import ActionLog, ObservationLog, RecordedEnvs, assert_rows_are_normalized_observations, read_scalars
 
 SCRIPTS = [cpc, ppo_baseline]
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2)
@@ -170,6 +170,28 @@ def test_evaluation_samples_the_policy_unless_deterministic(module):
         else:
             z = (actions - mean) / std
             assert abs(z.mean()) < 0.3 and 0.8 < z.std() < 1.2, (z.mean(), z.std())
+
+
+@pytest.mark.parametrize("module", SCRIPTS, ids=lambda m: m.__name__)
+def test_evaluation_sees_observations_as_training_does(module):
+    """Evaluation normalizes each raw observation with the frozen statistics and clips it to +-10, as the
+    training wrappers do (Appendix B.5): checked against the raw observations the evaluation envs returned."""
+    rows = []
+
+    def policy(obs):
+        rows.extend(obs.numpy())
+        out = (torch.zeros(len(obs), 3), torch.zeros(len(obs), 3))
+        return (*out, obs.new_zeros(0, len(obs))) if module is cpc else out
+
+    mean = np.linspace(-0.5, 0.5, 11)
+    for var in (np.full(11, 4.0), np.full(11, 1e-4)):  # the second puts many components beyond the clip
+        rows.clear()
+        evaluator = module.Evaluator("Hopper-v4", 2, seed=1, wrap=ObservationLog)
+        evaluator(policy, (mean, var), 0)
+        evaluator.close()
+        assert len(rows) > 10
+        assert_rows_are_normalized_observations(rows, evaluator.envs, mean, var)
+    assert np.mean(np.abs(rows) == 10) > 0.1  # the clip did act
 
 
 # ----------------------------------------------------------------------------------------------

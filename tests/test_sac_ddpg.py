@@ -476,6 +476,12 @@ def test_evaluations_act_as_the_papers_code_evaluates(algo, deterministic):
                 torch.testing.assert_close(action, centre, rtol=0, atol=1e-6)
             else:
                 assert abs(z.mean()) < 0.1 and 0.9 < z.std() < 1.1, (kind, z.mean(), z.std())
+            # the noise comes from the evaluation's own generator: the same draws again for the same seed, and
+            # training's global RNG untouched (an evaluation never changes the run it is part of)
+            training_rng = torch.get_rng_state()
+            again = [policy(obs, torch.Generator().manual_seed(7))[0] for _ in range(2)]
+            torch.testing.assert_close(again[0], again[1], rtol=0, atol=0)
+            assert torch.equal(torch.get_rng_state(), training_rng), kind
 
 
 def test_replay_buffer_wraps_and_clears():
