@@ -137,7 +137,7 @@ class Args:
     eval_deterministic: bool = False
     """evaluate without exploration noise; by default the training noise is kept, as the paper's code evaluates"""
     eval_members: bool = True
-    """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`)"""
+    """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`; not with --eval-every 0)"""
 
     # Checkpoints, resuming, evaluating a saved model
     resume: str | None = None

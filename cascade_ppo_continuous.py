@@ -16,7 +16,8 @@ Reading order: `Args`; section 1, the algorithm in plain torch with autograd (th
 it acts, the loss, the training loop, the evaluation): the one definition of the math, and the place to
 edit it. Section 2 switches on fast paths (cascade_plumbing/fast.py: a numpy acting forward and sampler,
 hand-written gradients); they are checked against section 1 while training, and a run whose section 1 was
-edited so that they no longer match switches to section 1 by itself, with one warning line. Section 3
+edited so that they no longer match on the checked inputs switches to section 1 by itself, with one warning
+line (what the checks cannot see: "Hacking Cascade" in the README). Section 3
 wires the run to the shared plumbing (cascade_plumbing/: envs, logging, checkpoints, command line).
 
     python cascade_ppo_continuous.py --env-id Ant-v4 --n 6 --k 1000000
@@ -110,7 +111,7 @@ class Args:
     start_full: bool = False
     """build all n base nets at the start instead of one per iteration (Fig. 5 ablation; as the paper's code, one critic for the whole run, while Adam and the LR cycle still restart every k)"""
     lr_schedule: Literal["cyclic", "global", "constant"] = "cyclic"
-    """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (Fig. 12)"""
+    """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (Fig. 12); constant: no decay"""
 
     # PPO (CleanRL ppo_continuous_action defaults)
     learning_rate: float = 3e-4
@@ -140,7 +141,7 @@ class Args:
     max_grad_norm: float = 0.5
     """global gradient-norm clip"""
     target_kl: float | None = None
-    """stop an update early when the approximate KL exceeds this (off by default)"""
+    """skip an update's remaining epochs once the approximate KL of an epoch's last minibatch exceeds this (CleanRL; unset: never)"""
 
     # Evaluation (paper Appendix B.5)
     eval_every: int = 10_000
@@ -405,7 +406,9 @@ def ppo_loss(mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, act
 
 def autograd_gradients(actor: CascadeActor, critic: TanhMLP, params: list[nn.Parameter], minibatch: tuple,
                        args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """The loss of one minibatch and its gradient by autograd, written into every parameter's .grad."""
+    """The loss of one minibatch and its gradient by autograd, written into every parameter's .grad.
+    Keep it (and `ppo_loss`, `optimizer_step`) free of side effects: on the fast path it runs only inside the
+    run-time checks, on float64 copies (see "Hacking Cascade" in the README)."""
     obs, actions, old_logprob, advantages, returns, old_value = minibatch
     with torch.enable_grad():
         mean, log_std, _, _ = actor(obs)
@@ -427,7 +430,8 @@ def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.op
 
 
 def optimizer_step(params: nn.Parameter, optimizer: torch.optim.Optimizer, args: Args) -> None:
-    """One step on the gradients in .grad: the global gradient-norm clip, then the optimizer (CleanRL)."""
+    """One step on the gradients in .grad: the global gradient-norm clip, then the optimizer (CleanRL).
+    No side effects here either: the fast path's checks call it twice (on float64 copies), not once a step."""
     nn.utils.clip_grad_norm_([params], args.max_grad_norm)
     optimizer.step()
 
@@ -562,7 +566,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 for start in range(0, batch_size, minibatch_size):
                     minibatch = unpack(torch.index_select(batch, 0, b_inds[start : start + minibatch_size]))
                     # One step: edit `autograd_gradients` and `optimizer_step`, not these lines. The fast path
-                    # replaces the two calls below by the same step by hand, checked against those two functions.
+                    # replaces the two calls below by the same step by hand, checked against those two functions (which
+                    # then run only inside the checks: log or count things here in the loop, not inside them).
                     if fast.gradients:
                         loss, parts = fast.update(actor, critic, params, optimizer, minibatch, args, global_step)
                     if not fast.gradients:  # the definition (also right after the fast path switched itself off)

@@ -107,7 +107,7 @@ class Args:
     start_full: bool = False
     """build all n base nets at the start instead of one per iteration (Fig. 5 ablation; as the paper's code, one critic for the whole run, while Adam and the LR cycle still restart every k)"""
     lr_schedule: Literal["cyclic", "global", "constant"] = "cyclic"
-    """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (Fig. 12)"""
+    """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (Fig. 12); constant: no decay"""
 
     # PPO (CleanRL ppo.py defaults)
     learning_rate: float = 2.5e-4
@@ -137,7 +137,7 @@ class Args:
     max_grad_norm: float = 0.5
     """global gradient-norm clip"""
     target_kl: float | None = None
-    """stop an update early when the approximate KL exceeds this (off by default)"""
+    """skip an update's remaining epochs once the approximate KL of an epoch's last minibatch exceeds this (CleanRL; unset: never)"""
 
     # Evaluation (paper Appendix B.5)
     eval_every: int = 10_000

@@ -129,7 +129,7 @@ class Args:
     eval_deterministic: bool = False
     """evaluate with the squashed mean action instead of sampling (default: stochastic policy, as the paper evaluates, Appendix B.5)"""
     eval_members: bool = True
-    """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`)"""
+    """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`; not with --eval-every 0)"""
 
     # Checkpoints, resuming, evaluating a saved model
     resume: str | None = None

@@ -12,8 +12,8 @@ Reading order as in cascade_ppo_continuous.py: `Args`; section 1, the algorithm 
 (the nets, the policy and how it acts, the loss, the training loop, the evaluation): the one definition of the
 math, and the place to edit it. Section 2 switches on fast paths (cascade_plumbing/fast.py: a numpy acting
 forward and sampler, hand-written gradients); they are checked against section 1 while training, and a run
-whose section 1 was edited so that they no longer match switches to section 1 by itself, with one warning
-line. Section 3 wires the run to the shared plumbing (cascade_plumbing/: envs, logging, checkpoints, command
+whose section 1 was edited so that they no longer match on the checked inputs switches to section 1 by
+itself, with one warning line (what the checks cannot see: "Hacking Cascade" in the README). Section 3 wires the run to the shared plumbing (cascade_plumbing/: envs, logging, checkpoints, command
 line).
 
     python ppo_baseline.py --env-id Ant-v4 --total-timesteps 6000000
@@ -97,7 +97,7 @@ class Args:
     hidden_size: int = 64
     """width of the two hidden layers of the actor (the critic stays 64-64)"""
     lr_schedule: Literal["global", "cyclic", "constant"] = "global"
-    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps, with a fresh Adam at each restart as the paper's code ran Fig. 3 (a new PPO instance per cycle, the nets kept; Section 4.2)"""
+    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps, with a fresh Adam at each restart as the paper's code ran Fig. 3 (a new PPO instance per cycle, the nets kept; Section 4.2); constant: no decay"""
     cycle_steps: int = 1_000_000
     """length of one learning-rate cycle in env steps, with --lr-schedule cyclic"""
 
@@ -129,7 +129,7 @@ class Args:
     max_grad_norm: float = 0.5
     """global gradient-norm clip"""
     target_kl: float | None = None
-    """stop an update early when the approximate KL exceeds this (off by default)"""
+    """skip an update's remaining epochs once the approximate KL of an epoch's last minibatch exceeds this (CleanRL; unset: never)"""
 
     # Evaluation (paper Appendix B.5)
     eval_every: int = 10_000
@@ -249,7 +249,9 @@ def ppo_loss(mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, act
 
 def autograd_gradients(actor: Actor, critic: TanhMLP, params: list[nn.Parameter], minibatch: tuple,
                        args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """The loss of one minibatch and its gradient by autograd, written into every parameter's .grad."""
+    """The loss of one minibatch and its gradient by autograd, written into every parameter's .grad.
+    Keep it (and `ppo_loss`, `optimizer_step`) free of side effects: on the fast path it runs only inside the
+    run-time checks, on float64 copies (see "Hacking Cascade" in the README)."""
     obs, actions, old_logprob, advantages, returns, old_value = minibatch
     with torch.enable_grad():
         mean, log_std = actor(obs)
@@ -269,7 +271,8 @@ def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.op
 
 
 def optimizer_step(params: nn.Parameter, optimizer: torch.optim.Optimizer, args: Args) -> None:
-    """One step on the gradients in .grad: the global gradient-norm clip, then the optimizer (CleanRL)."""
+    """One step on the gradients in .grad: the global gradient-norm clip, then the optimizer (CleanRL).
+    No side effects here either: the fast path's checks call it twice (on float64 copies), not once a step."""
     nn.utils.clip_grad_norm_([params], args.max_grad_norm)
     optimizer.step()
 
@@ -381,7 +384,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
             for start in range(0, batch_size, minibatch_size):
                 minibatch = unpack(torch.index_select(batch, 0, b_inds[start : start + minibatch_size]))
                 # One step: edit `autograd_gradients` and `optimizer_step`, not these lines. The fast path
-                # replaces the two calls below by the same step by hand, checked against those two functions.
+                # replaces the two calls below by the same step by hand, checked against those two functions (which
+                # then run only inside the checks: log or count things here in the loop, not inside them).
                 if fast.gradients:
                     loss, parts = fast.update(actor, critic, params, optimizer, minibatch, args, global_step)
                 if not fast.gradients:  # the definition (also right after the fast path switched itself off)

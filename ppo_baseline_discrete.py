@@ -90,7 +90,7 @@ class Args:
     hidden_size: int = 64
     """width of the two hidden layers of the actor (the critic stays 64-64)"""
     lr_schedule: Literal["global", "cyclic", "constant"] = "global"
-    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps, with a fresh Adam at each restart (as ppo_baseline.py and the paper's code)"""
+    """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps, with a fresh Adam at each restart (as ppo_baseline.py and the paper's code); constant: no decay"""
     cycle_steps: int = 1_000_000
     """length of one learning-rate cycle in env steps, with --lr-schedule cyclic"""
 
@@ -122,7 +122,7 @@ class Args:
     max_grad_norm: float = 0.5
     """global gradient-norm clip"""
     target_kl: float | None = None
-    """stop an update early when the approximate KL exceeds this (off by default)"""
+    """skip an update's remaining epochs once the approximate KL of an epoch's last minibatch exceeds this (CleanRL; unset: never)"""
 
     # Evaluation (paper Appendix B.5)
     eval_every: int = 10_000
