@@ -265,9 +265,9 @@ class CascadeActor(nn.Module):
 
     def trainable(self, param: torch.Tensor, first_net: int) -> torch.Tensor:
         """`param` with the rows of frozen nets detached, so that no gradient reaches them."""
-        if self.num_frozen <= first_net:  # nothing frozen in this parameter (the default)
+        rows = self.frozen_rows(first_net)
+        if rows == 0:  # nothing frozen in this parameter (the default)
             return param
-        rows = self.num_frozen - first_net
         return torch.cat([param[:rows].detach(), param[rows:]])
 
     def base_nets(self, obs: torch.Tensor, cache: dict | None = None
@@ -615,7 +615,7 @@ class Evaluator(EvaluationEnvs):
         """Runs `policy` (obs -> mean, log-std, fallbacks [m, B]); returns each episode's undiscounted
         raw return and the std of each fallback within each episode [episodes, m]. The episodes'
         seeds and the action noise depend only on (seed, call): evaluation never touches training's RNG."""
-        base_seed = self.seed + 100_003 * (call + 1)
+        base_seed = self.base_seed(call)
         fallbacks: list[list[np.ndarray]] = [[] for _ in self.envs]
 
         def act_frozen(raw_obs: np.ndarray, running: list[int]) -> np.ndarray:
