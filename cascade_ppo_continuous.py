@@ -481,10 +481,6 @@ def train(args: Args, checkpoint: dict | None = None,
     rewards = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
     dones = np.zeros((args.num_steps, args.num_envs), dtype=np.float32)
 
-    def unpack(rows: torch.Tensor) -> tuple[torch.Tensor, ...]:  # obs, actions, old logprob, adv., returns, value
-        mb_obs, mb_actions, rest = rows.split([obs_dim, act_dim, 4], 1)
-        return (mb_obs, mb_actions, *rest.unbind(1))
-
     if checkpoint is None:
         global_step, start_iteration, start_update = 0, 1, 1
         next_obs = envs.reset(seed=args.seed)[0].astype(np.float32)
@@ -556,15 +552,14 @@ def train(args: Args, checkpoint: dict | None = None,
             b_returns = b_advantages + b_values
 
             # --- PPO update of the whole stack and the critic ---
-            # one [B, D] tensor holding all a minibatch needs, so each minibatch is a single gather
-            batch = torch.cat([b_obs, b_actions, b_logprobs[:, None], b_advantages[:, None], b_returns[:, None],
-                               b_values[:, None]], dim=1)
+            # what a minibatch holds (the order `autograd_gradients` unpacks)
+            batch = (b_obs, b_actions, b_logprobs, b_advantages, b_returns, b_values)
             all_params = [*actor.parameters(), *critic.parameters()]
             ratios = []  # of every minibatch, for the clip fraction
             for _epoch in range(args.update_epochs):
                 b_inds = torch.randperm(batch_size, device=device)
                 for start in range(0, batch_size, minibatch_size):
-                    minibatch = unpack(torch.index_select(batch, 0, b_inds[start : start + minibatch_size]))
+                    minibatch = tuple(tensor[b_inds[start : start + minibatch_size]] for tensor in batch)
                     # One step: edit `autograd_gradients` and `optimizer_step`, not these lines. The fast path
                     # replaces the two calls below by the same step by hand, checked against those two functions (which
                     # then run only inside the checks: log or count things here in the loop, not inside them).
