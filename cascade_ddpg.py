@@ -23,7 +23,7 @@ RLJ 2025, Appendix H.2 (DDPG), with the evaluation schedule of Appendix B.5.
     python cascade_ddpg.py --env-id Hopper-v4                                    # Cascade: 6 nets, a new one every 1M steps
     python cascade_ddpg.py --env-id Hopper-v4 --n 1 --k 6000000 --hidden-size 64 --exp-name ddpg_baseline
     python cascade_ddpg.py --env-id Hopper-v4 --hidden-size 256 --critic-hidden-size 256 --activation relu \
-        --no-anneal-lr --adam-eps 1e-8 --eval-deterministic --obs-reward-clip 0    # CleanRL's DDPG nets and settings
+        --no-anneal-lr --adam-eps 1e-8 --eval-deterministic --obs-reward-clip 0    # Cascade on CleanRL's net sizes and settings
     tensorboard --logdir runs
 """
 
@@ -103,9 +103,9 @@ class Args:
     reset_critic: bool = False
     """ablation: fresh critic, target critic and critic optimizer when a base net is added (standard: kept)"""
     restart_on_new_net: bool = True
-    """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critic re-copied, target actor = copy of the whole cascade, critic optimizer recreated; `--no-restart-on-new-net`: all kept, the current policy collects the warm-up (the paper's text)"""
+    """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critic re-copied, target actor = copy of the whole cascade, critic optimizer recreated; `--no-restart-on-new-net`: target critic and critic optimizer kept, the target actor gets the new net with the online net's init, the current policy collects the warm-up (the paper's text); the actor optimizer is new either way"""
 
-    # DDPG (CleanRL ddpg_continuous_action defaults)
+    # DDPG (CleanRL ddpg_continuous_action's defaults, except where the paper's code differs: see the README)
     buffer_size: int = 1_000_000
     """the replay memory capacity (float32 numpy, preallocated; see the README for the memory it takes)"""
     gamma: float = 0.99
@@ -411,7 +411,8 @@ def train(args: Args, checkpoint: dict | None = None,
         q_optimizer.load_state_dict(checkpoint["q_optimizer"])
 
     for iteration in range(start_iteration, args.n + 1):
-        # --- a new Cascade iteration: new base net, emptied buffer, kept critic, fresh actor optimizer ---
+        # --- a new Cascade iteration: new base net, emptied buffer, fresh actor optimizer; the critic kept (fresh
+        # with --reset-critic), its target, its optimizer and the target actor renewed (the restart) ---
         if args.restart_on_new_net:
             # the paper's code starts a new DDPG instance per net: its target actor is a copy of the whole
             # cascade, its target critic a copy of the kept critic, and the critic optimizer is new

@@ -6,7 +6,7 @@ The actor is a Cascade of base nets `obs -> 128 -> 128 -> (mean, log-std)` (ReLU
 new base net b_i is stacked on the ensemble C_{i-1}; besides its mean and state-dependent log-std it emits
 a fallback weight lambda_i(x) in [0, 1] and the ensemble becomes (Section 3, Eq. 1; Appendix B.2)
 
-    C_i(x) = lambda_i(x) * C_{i-1}(x) + (1 - lambda_i(x)) * b_i(x)     (mean and log-std, before the tanh squash)
+    C_i(x) = lambda_i(x) * C_{i-1}(x) + (1 - lambda_i(x)) * b_i(x)     (mean and raw log-std, before the log-std bound and the tanh squash)
 
 The whole stack is trained end to end by SAC. When a net is added, as in the paper's code (a new SAC
 instance per net): the replay buffer is emptied, `--learning-starts` uniform-random steps without updates
@@ -95,7 +95,7 @@ class Args:
     restart_on_new_net: bool = True
     """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critics re-copied, critic optimizer recreated; `--no-restart-on-new-net`: targets and optimizer kept, the current policy collects the warm-up (the paper's text)"""
 
-    # SAC (CleanRL sac_continuous_action defaults)
+    # SAC (CleanRL sac_continuous_action's defaults, except where the paper's code differs: see the README)
     buffer_size: int = 1_000_000
     """the replay memory capacity (float32 numpy, preallocated; see the README for the memory it takes)"""
     gamma: float = 0.99
@@ -438,7 +438,8 @@ def train(args: Args, checkpoint: dict | None = None,
         alpha = checkpoint["alpha"]
 
     for iteration in range(start_iteration, args.n + 1):
-        # --- a new Cascade iteration: new base net, emptied buffer, kept critics, fresh actor optimizer ---
+        # --- a new Cascade iteration: new base net, emptied buffer, fresh actor optimizer; the critics kept (fresh
+        # with --reset-critic), their targets re-copied and their optimizer renewed (the restart) ---
         actor.add_base_net()
         if iteration > 1 and (args.reset_critic or args.restart_on_new_net):
             if args.reset_critic:  # the ablation: fresh critics
