@@ -226,7 +226,8 @@ class CascadeActor(nn.Module):
     def add_base_net(self, init: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
         """Stack a base net on top (new stacked Parameters: rebuild the optimizer) and return its init.
         `init` (another actor's return value) gives the target actor the online net's very weights.
-        Orthogonal init (paper H); it names no gains, so CleanRL PPO's: sqrt(2) hidden, 0.01 output, zero bias."""
+        Orthogonal init (paper H, which names no gains): the paper's code's gains for its DDPG actors (its
+        AgentConfigs/VanillaDDPG.py, CleanRL PPO's too): sqrt(2) hidden, 0.01 output, zero biases."""
         grown = init
         if grown is None:
             dims = [self.obs_dim] + [self.hidden_size] * self.num_layers
