@@ -428,7 +428,7 @@ def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
     summary = open(tmp_path / "summary.md").read()
     row = next(line for line in summary.splitlines() if line.startswith("| Hopper-v4 |"))
     assert f"{np.mean(scores['cascade']):.0f} ± " in row and f"{np.mean(scores['ppo']):.0f} ± " in row, row
-    better = np.mean([(c > p) + 0.5 * (c == p) for c in scores["cascade"] for p in scores["ppo"]])
+    better = reference_improvement(np.array(scores["cascade"]), np.array(scores["ppo"]))
     assert better != 0.5 and f"| {better:.2f} |" in row, row  # P(Cascade > PPO), not P(PPO > Cascade)
     # final_performance's scores too: each run's last 3 evaluations (the sample's last evaluation differs)
     rows = {r["experiment"]: r for r in read_csv(tmp_path / "final_performance.csv")}
@@ -480,16 +480,9 @@ def test_exported_runs_hold_what_the_figures_read(runs, tmp_path, capsys):
     # existing files are kept (--overwrite rewrites them); an unfinished run is left out (--allow-incomplete)
     assert export_results.main(export_results.Args(runs=[runs["track"]], out=str(out))) == []
     assert len(export_results.main(export_results.Args(runs=[runs["track"]], out=str(out), overwrite=True))) == 4
-    from torch.utils.tensorboard import SummaryWriter
-
-    killed = tmp_path / "killed" / "Hopper-v4__ppo_baseline__3__1700000000"
-    writer = SummaryWriter(str(killed))
-    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n|num_envs|1|\n|num_steps|2048|\n"
-                                       "|total_timesteps|1000000|\n|seed|3|")
-    for step in (0, 500_000):
-        writer.add_scalar("eval/episodic_return", 1.0, step)
-    writer.close()
-    args = export_results.Args(runs=[str(killed.parent)], out=str(tmp_path / "killed_out"))
+    killed = write_fake_run(tmp_path / "killed", "Hopper-v4__ppo_baseline__3__1700000000", [0, 500_000],
+                            hparams={"num_envs": 1, "num_steps": 2048, "total_timesteps": 1_000_000, "seed": 3})
+    args = export_results.Args(runs=[os.path.dirname(killed)], out=str(tmp_path / "killed_out"))
     capsys.readouterr()
     assert export_results.main(args) == []
     assert "evaluated up to step 500,000 of 999,424 (unfinished)" in capsys.readouterr().err
@@ -554,11 +547,15 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
     assert "frozen" not in curves
 
 
-def write_fake_run(root, name, steps, value=1.0):
-    """A run folder with `eval/episodic_return` logged at `steps` (TensorBoard's own writer)."""
+def write_fake_run(root, name, steps, value=1.0, hparams=None):
+    """A run folder with `eval/episodic_return` logged at `steps` (TensorBoard's own writer), and `hparams` as
+    the scripts log their settings."""
     from torch.utils.tensorboard import SummaryWriter
 
     writer = SummaryWriter(os.path.join(root, name))
+    if hparams:
+        writer.add_text("hyperparameters",
+                        "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{setting}|" for key, setting in hparams.items()))
     for step in steps:
         writer.add_scalar("eval/episodic_return", value, step)
     writer.close()
