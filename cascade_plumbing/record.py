@@ -19,7 +19,7 @@ import torch.nn as nn
 from .checkpoints import CHECKPOINT_NAME, atomic_copy, non_finite_advice, repair_iteration_files, save_checkpoint
 from .envs import make_render_env
 from .errors import fail
-from .runs import rng_states, run_name, set_rng_states
+from .runs import OPEN_WRITERS, rng_states, run_name, set_rng_states
 from .tracking import VIDEO_ROOT, Progress, finish_wandb, finished_videos, log_new_videos, start_wandb
 
 
@@ -57,6 +57,7 @@ class RunRecord:
             )
         else:  # purge_step hides whatever the killed run logged after its last checkpoint
             self.writer = SummaryWriter(self.run_dir, purge_step=checkpoint["global_step"] + 1)
+        OPEN_WRITERS.add(self.writer)
         self.video_folder = os.path.join(VIDEO_ROOT, name) if args.capture_video else None
         if self.video_folder is not None:
             envs.call("record_videos_to", self.video_folder)

@@ -12,6 +12,7 @@ import socket
 import sys
 import tempfile
 import time
+import weakref
 from collections.abc import Callable
 from typing import Any
 
@@ -113,6 +114,9 @@ def saving(path: str, payload: dict) -> None:
         FINISHING.append(False)
 
 
+OPEN_WRITERS: weakref.WeakSet = weakref.WeakSet()  # the runs' TensorBoard writers (cascade_plumbing.record adds them)
+
+
 def stopped(args: Any, checkpoint: dict | None, started: float) -> None:
     """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM).
     A new run stopped before its first checkpoint removes its folder: there is nothing in it to resume."""
@@ -130,6 +134,8 @@ def stopped(args: Any, checkpoint: dict | None, started: float) -> None:
     else:
         where = "no checkpoint was written yet, so there is nothing to resume"
         if checkpoint is None and run_dir is not None and only_mine(run_dir):
+            for writer in list(OPEN_WRITERS):  # their flush thread must not write into the removed folder
+                writer.close()
             shutil.rmtree(run_dir, ignore_errors=True)
             where += f" (its folder {run_dir} is removed)"
     print(f"\rstopped by {name}: {where}", file=sys.stderr, flush=True)
