@@ -268,14 +268,14 @@ class CascadeActor(nn.Module):
             hidden = self.activation(torch.baddbmm(bias, hidden, weight))  # [n, B, H], all nets at once
         mu = torch.baddbmm(mu_bias, hidden, mu_weight)  # [n, B, A], each net's raw output
         fallback = torch.sigmoid(torch.baddbmm(fallback_bias, hidden[1:], fallback_weight))  # [n-1, B, 1]
-        weight = contributions(fallback)  # [n, B, 1]
+        contribution = contributions(fallback)  # w_i [n, B, 1]
         if self.combine_before_tanh:  # the paper's code: C_n = sum_i w_i mu_i, squashed once
-            squashed = torch.tanh((weight * mu).sum(0))
+            squashed = torch.tanh((contribution * mu).sum(0))
         else:  # each net squashed into [-1, 1] first, then combined
-            squashed = (weight * torch.tanh(mu)).sum(0)
+            squashed = (contribution * torch.tanh(mu)).sum(0)
         # sum_i w_i (scale*t_i + bias) = scale * sum_i w_i t_i + bias, as the weights sum to one
         action = squashed * self.action_scale + self.action_bias
-        return action, fallback.squeeze(-1), weight.squeeze(-1)
+        return action, fallback.squeeze(-1), contribution.squeeze(-1)
 
     def member(self, obs: torch.Tensor, net: int) -> torch.Tensor:
         """Action of base net `net` (0-based) acting alone."""

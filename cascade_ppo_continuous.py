@@ -295,12 +295,12 @@ class CascadeActor(nn.Module):
             return zeros, zeros, obs.new_zeros(0, obs.shape[0]), obs.new_zeros(0, obs.shape[0])
         means, log_stds, fallback_logit = self.base_nets(obs, cache)
         fallback = torch.sigmoid(fallback_logit)  # l_i, nets 2..n
-        weight = contributions(fallback)  # [n, B]
-        mean = (weight[..., None] * means).sum(0)  # C_n = sum_i w_i b_i
-        log_std = weight.T @ log_stds  # the same sum for the per-net log-std vectors
+        contribution = contributions(fallback)  # w_i [n, B]
+        mean = (contribution[..., None] * means).sum(0)  # C_n = sum_i w_i b_i
+        log_std = contribution.T @ log_stds  # the same sum for the per-net log-std vectors
         if cache is not None:
-            cache.update(fallback_logit=fallback_logit, weight=weight)
-        return mean, log_std, fallback, weight
+            cache.update(fallback_logit=fallback_logit, contribution=contribution)
+        return mean, log_std, fallback, contribution
 
     def member(self, obs: torch.Tensor, net: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and log-std of base net `net` (0-based) acting alone."""

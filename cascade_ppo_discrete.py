@@ -269,8 +269,8 @@ class CascadeActor(nn.Module):
             hidden = torch.tanh(torch.baddbmm(bias, hidden, weight))  # [n, B, H], all nets at once
         logits = torch.baddbmm(self.logits_bias, hidden, self.logits_weight)  # [n, B, K]
         fallback = torch.sigmoid(torch.baddbmm(self.fallback_bias, hidden[1:], self.fallback_weight))
-        weight = contributions(fallback)  # [n, B, 1]
-        return (weight * logits).sum(0), fallback.squeeze(-1), weight.squeeze(-1)  # C_n = sum_i w_i b_i
+        contribution = contributions(fallback)  # w_i [n, B, 1]
+        return (contribution * logits).sum(0), fallback.squeeze(-1), contribution.squeeze(-1)  # C_n = sum_i w_i b_i
 
     def member(self, obs: torch.Tensor, net: int) -> torch.Tensor:
         """Logits of base net `net` (0-based) acting alone."""
@@ -502,14 +502,14 @@ def train(args: Args, checkpoint: dict | None = None,
                 obs[step] = next_obs
                 dones[step] = next_done
                 with torch.inference_mode():
-                    logits, fallback, weight = actor(next_obs)
+                    logits, fallback, contribution = actor(next_obs)
                     dist = torch.distributions.Categorical(logits=logits)
                     action = dist.sample()
                     logprobs[step] = dist.log_prob(action)
                     values[step] = critic(next_obs).squeeze(-1)
                 actions[step] = action
                 step_fallbacks[step, :, : size - 1] = fallback.T
-                step_contributions[step, :, :size] = weight.T
+                step_contributions[step, :, :size] = contribution.T
 
                 next_obs_np, reward, terminations, truncations, infos = envs.step(action.cpu().numpy())
                 rewards[step] = torch.as_tensor(reward, device=device)

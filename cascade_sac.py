@@ -282,11 +282,11 @@ class CascadeActor(nn.Module):
             hidden = torch.relu(torch.baddbmm(bias, hidden, weight))  # [n, B, H], all nets at once
         out = torch.baddbmm(head_bias, hidden, head_weight)  # [n, B, 2A]: each net's mean and raw log-std
         fallback = torch.sigmoid(torch.baddbmm(fallback_bias, hidden[1:], fallback_weight))  # [n-1, B, 1]
-        weight = contributions(fallback)  # [n, B, 1]
-        combined = (weight * out).sum(0)  # C_n = sum_i w_i b_i, for mean and raw log-std at once
+        contribution = contributions(fallback)  # w_i [n, B, 1]
+        combined = (contribution * out).sum(0)  # C_n = sum_i w_i b_i, for mean and raw log-std at once
         # the paper's code bounds the combined raw log-std (SAC's get_action), not each net's
         return combined[:, : self.act_dim], bounded_log_std(combined[:, self.act_dim :]), fallback.squeeze(-1), \
-            weight.squeeze(-1)
+            contribution.squeeze(-1)
 
     def get_action(self, obs: torch.Tensor, generator: torch.Generator | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -264,14 +264,14 @@ def ppo_loss_gradients(
 
 def cascade_backward(actor: nn.Module, cache: dict, grad_mean: torch.Tensor, grad_log_std: torch.Tensor) -> None:
     """Write every actor parameter's .grad from dL/dmean, dL/dlog_std [B, A] of `actor(obs, cache)`."""
-    activations, means, fallback_logit, weight = (cache[key] for key in ("activations", "means", "fallback_logit",
-                                                                          "weight"))
+    activations, means, fallback_logit, contribution = (
+        cache[key] for key in ("activations", "means", "fallback_logit", "contribution"))
     hidden_layers = actor.hidden_layers
     mean_weight, mean_bias, fallback_weight, fallback_bias, log_std = (  # one lookup each: nn.Module's are slow
         actor.mean_weight, actor.mean_bias, actor.fallback_weight, actor.fallback_bias, actor.log_std)
     # C_n = sum_i w_i b_i: net i's outputs get w_i times the ensemble's gradient
-    grad_means = weight[..., None] * grad_mean  # [n, B, A]
-    torch.mm(weight, grad_log_std, out=log_std.grad)  # sum over the batch of w_i dL/dlog_std
+    grad_means = contribution[..., None] * grad_mean  # [n, B, A]
+    torch.mm(contribution, grad_log_std, out=log_std.grad)  # sum over the batch of w_i dL/dlog_std
     hidden = activations[-1]
     torch.bmm(hidden.transpose(1, 2), grad_means, out=mean_weight.grad)
     torch.sum(grad_means, 1, keepdim=True, out=mean_bias.grad)
@@ -283,7 +283,7 @@ def cascade_backward(actor: nn.Module, cache: dict, grad_mean: torch.Tensor, gra
         # where q_k = <g, b_k> and S_k = sum_{i<=k} w_i q_i = later_k <g, C_k> (a cumulative sum, no division).
         # Written as S_{k-1} - l_k S_k it would cancel ~-log10(1 - l_k) digits once a fallback saturates;
         # 1 - l_k = sigmoid(-z_k) keeps its digits.
-        weighted_q = torch.addcmul((grad_means * means).sum(-1), weight, log_std @ grad_log_std.T)  # [n, B]
+        weighted_q = torch.addcmul((grad_means * means).sum(-1), contribution, log_std @ grad_log_std.T)  # [n, B]
         partial_sums = weighted_q.cumsum(0)  # S_1..S_n
         grad_logit = (torch.sigmoid(-fallback_logit) * partial_sums[:-1]
                       - torch.sigmoid(fallback_logit) * weighted_q[1:]).unsqueeze(-1)

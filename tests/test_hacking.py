@@ -74,8 +74,8 @@ EDITS = {
                    "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef + 0.01 * mean.pow(2).mean()")],
     "relu base nets": [("hidden = torch.tanh(stacked_affine(", "hidden = torch.relu(stacked_affine(")],
     "relu mlp": [("x = torch.tanh(torch.addmm(bias, x, weight))", "x = torch.relu(torch.addmm(bias, x, weight))")],
-    "softmax gating": [("        weight = contributions(fallback)  # [n, B]",
-                        "        weight = torch.softmax(torch.cat([fallback_logit.new_zeros(1, obs.shape[0]), "
+    "softmax gating": [("        contribution = contributions(fallback)  # w_i [n, B]",
+                        "        contribution = torch.softmax(torch.cat([fallback_logit.new_zeros(1, obs.shape[0]), "
                         "fallback_logit]), 0)")],
     # a review (2026-12-03): the fallback rule, written once in `forward`, reaches the policy (not only the logs)
     "fallback temperature": [("        fallback = torch.sigmoid(fallback_logit)  # l_i, nets 2..n",
