@@ -581,6 +581,8 @@ def train(args: Args, checkpoint: dict | None = None,
             # --- non-finite guard: stop before anything bad is written to the checkpoint ---
             run.stop_if_non_finite(loss, {"actor": actor, "critic": critic},
                                    f"global_step={global_step} (iteration {iteration}, update {update})")
+            if update == updates_per_iteration and args.eval_members:  # each base net alone, at the iteration's end
+                run.evaluate(global_step, actor, members=True)
             run.maybe_checkpoint(iteration, update, updates_per_iteration, global_step, actor, critic, optimizer,
                                  next_obs, next_done)
         run.iteration_done(iteration, global_step)
@@ -788,15 +790,13 @@ class RunLog(RunRecord):
     def maybe_checkpoint(self, iteration: int, update: int, updates_per_iteration: int, global_step: int,
                          actor: CascadeActor, critic: nn.Module, optimizer: torch.optim.Optimizer,
                          next_obs: np.ndarray, next_done: np.ndarray) -> None:
-        """At the end of an iteration (after evaluating each net alone) and every --checkpoint-every steps."""
+        """At the end of an iteration and every --checkpoint-every steps, once every evaluation asked for so far
+        (the members' at an iteration's end among them) is logged."""
         end_of_iteration = update == updates_per_iteration
         due = self.checkpoint_due(global_step)
         self.log_evaluations(wait=end_of_iteration or due)  # finished evaluations; before a checkpoint, all
         if not (end_of_iteration or due):
             return
-        if end_of_iteration and self.args.eval_members:
-            self.evaluate(global_step, actor, members=True)
-            self.log_evaluations(wait=True)
         payload = {
             "format": CHECKPOINT_FORMAT, "args": asdict(self.args), "obs_dim": self.obs_dim, "act_dim": self.act_dim,
             "iteration": iteration, "updates_done": update,
