@@ -193,7 +193,7 @@ def contributions(fallback: torch.Tensor) -> torch.Tensor:
     Returns w [n, B], summing to 1 over nets.
     """
     ones = fallback.new_ones((1, *fallback.shape[1:]))
-    later = torch.cat([fallback, ones]).flip(0).cumprod(0).flip(0)  # row i: prod_{j>i} l_j
+    later = torch.cat([fallback, ones]).flip(0).cumprod(0).flip(0)  # row of net i: prod_{j>i} l_j
     return torch.cat([ones, 1 - fallback]) * later
 
 
@@ -203,7 +203,8 @@ class CascadeActor(nn.Module):
     The base nets' weights are stacked along a leading net axis ([n, in, out]) so every layer of all
     nets is one batched matmul; the nets are then combined with the closed form of `contributions`.
     Net 1 (the bottom) has no fallback head, so the fallback head holds nets 2..n only.
-    Each net also owns a state-independent log-std vector.
+    Each net also owns a state-independent log-std vector. Anything the policy needs to act must be a Parameter
+    or a buffer (`register_buffer`): evaluations and checkpoints rebuild the actor from its `state_dict`.
     """
 
     def __init__(self, obs_dim: int, act_dim: int, hidden_size: int, num_layers: int, fallback_init: float):
@@ -260,7 +261,8 @@ class CascadeActor(nn.Module):
         self._refresh()
 
     def freeze_below(self, num_frozen: int) -> None:
-        """Give no gradient to base nets 1..num_frozen (the rest train)."""
+        """Give no gradient to base nets 1..num_frozen (the rest train). They stay in the optimizer, which does not
+        move them with Adam (zero gradients, fresh moments each iteration) but would with weight decay."""
         self.num_frozen = num_frozen
 
     def trainable(self, param: torch.Tensor, first_net: int) -> torch.Tensor:
@@ -375,7 +377,8 @@ def sample_action(mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
 
 
 def act(actor: CascadeActor, obs: np.ndarray) -> np.ndarray:
-    """The rollout's actions for a batch of observations [E, obs_dim]: samples of the current policy."""
+    """The rollout's actions for a batch of observations [E, obs_dim]: samples of the current policy.
+    Evaluations act through `Evaluator` below (the same `sample_action`), not through this function."""
     with torch.inference_mode():
         mean, log_std, _, _ = actor(torch.as_tensor(obs, device=actor.log_std.device))
         return sample_action(mean, log_std).cpu().numpy()
@@ -423,16 +426,15 @@ def autograd_gradients(actor: CascadeActor, critic: TanhMLP, params: list[nn.Par
 def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
     """PPO's Adam (eps 1e-5, CleanRL); the fused kernel updates all parameters at once, ~3x faster on CPU.
     Any other optimizer works too: the fast path calls the fused Adam kernel directly only for this exact
-    Adam and checks its step against `optimizer_step` below. `params` is one flat buffer that every
-    parameter of the actor and critic is a view of (`share_one_buffer`), so the optimizer has one group
-    (the loop anneals `param_groups[0]`, as CleanRL)."""
+    Adam and checks its step against `optimizer_step` below. `params` is `[flat_params]`, the one buffer
+    that every parameter of the actor and critic (and their .grad) is a view of (`share_one_buffer`)."""
     return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
 
 
-def optimizer_step(params: nn.Parameter, optimizer: torch.optim.Optimizer, args: Args) -> None:
+def optimizer_step(flat_params: nn.Parameter, optimizer: torch.optim.Optimizer, args: Args) -> None:
     """One step on the gradients in .grad: the global gradient-norm clip, then the optimizer (CleanRL).
     No side effects here either: the fast path's checks call it twice (on float64 copies), not once a step."""
-    nn.utils.clip_grad_norm_([params], args.max_grad_norm)
+    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)
     optimizer.step()
 
 
@@ -495,7 +497,7 @@ def train(args: Args, checkpoint: dict | None = None,
         critic = run.saved_critic(checkpoint, device)  # --start-full keeps one critic for the whole run
     for iteration in range(start_iteration, args.n + 1):
         if checkpoint is not None and iteration == start_iteration and start_update > 1:
-            critic, params, optimizer = run.restore_mid_iteration(checkpoint, actor, device)
+            critic, flat_params, optimizer = run.restore_mid_iteration(checkpoint, actor, device)
         else:
             # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
             if not args.start_full:
@@ -504,8 +506,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 actor.freeze_below(actor.size - 1)
             if critic is None or not args.start_full:  # --start-full: the paper's code keeps its one critic
                 critic = make_critic(obs_dim).to(device)
-            params = share_one_buffer([*actor.parameters(), *critic.parameters()])
-            optimizer = make_optimizer([params], args.learning_rate)
+            flat_params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+            optimizer = make_optimizer([flat_params], args.learning_rate)
         run.iteration_start(iteration, actor, critic, global_step)
         if on_iteration_start is not None:
             on_iteration_start(
@@ -519,11 +521,13 @@ def train(args: Args, checkpoint: dict | None = None,
                 frac = 1.0 - ((iteration - 1) * updates_per_iteration + update - 1.0) / total_updates
             else:
                 frac = 1.0
-            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+            for group in optimizer.param_groups:  # one group here (the flat buffer); an edit may make more
+                group["lr"] = frac * args.learning_rate
 
             # --- rollout: the weights do not change during it; values, log-probs and fallback
             # statistics are computed for the whole batch afterwards ---
-            # `act`, or its numpy twin once it draws what `act` draws on the next observation and 8 of the last rollout's
+            # `act`, or its numpy twin once the two draw the same actions on these observations (the next one and
+            # 8 of the previous rollout's; zeros before the first rollout)
             check_obs = np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]])
             policy = fast.acting_function(act, actor, check_obs, global_step, args.num_steps)
             for step in range(args.num_steps):
@@ -564,10 +568,11 @@ def train(args: Args, checkpoint: dict | None = None,
                     # replaces the two calls below by the same step by hand, checked against those two functions (which
                     # then run only inside the checks: log or count things here in the loop, not inside them).
                     if fast.gradients:
-                        loss, parts = fast.update(actor, critic, params, optimizer, minibatch, args, global_step)
+                        loss, parts = fast.update(actor, critic, flat_params, optimizer, minibatch, args, global_step)
                     if not fast.gradients:  # the definition (also right after the fast path switched itself off)
+                        flat_params.grad.zero_()  # CleanRL's optimizer.zero_grad(), in place: the nets' .grad are views of it
                         loss, parts = autograd_gradients(actor, critic, all_params, minibatch, args)
-                        optimizer_step(params, optimizer, args)
+                        optimizer_step(flat_params, optimizer, args)
                     ratios.append(parts["ratio"])
 
                 # CleanRL's diagnostics, from the epoch's last minibatch
@@ -732,10 +737,10 @@ class RunLog(RunRecord):
     def restore_mid_iteration(self, checkpoint: dict, actor: CascadeActor, device: torch.device) -> tuple:
         """The saved critic and optimizer of an iteration the checkpoint was written in the middle of."""
         critic = self.saved_critic(checkpoint, device)
-        params = share_one_buffer([*actor.parameters(), *critic.parameters()])
-        optimizer = make_optimizer([params], self.args.learning_rate)
+        flat_params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+        optimizer = make_optimizer([flat_params], self.args.learning_rate)
         optimizer.load_state_dict(checkpoint["optimizer"])
-        return critic, params, optimizer
+        return critic, flat_params, optimizer
 
     # --- logging ---
     def iteration_start(self, iteration: int, actor: CascadeActor, critic: nn.Module, global_step: int) -> None:

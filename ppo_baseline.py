@@ -189,7 +189,8 @@ class TanhMLP(nn.Module):
 
 
 class Actor(nn.Module):
-    """Gaussian policy: mean MLP obs -> H -> H -> A (tanh) and one state-independent log-std vector."""
+    """Gaussian policy: mean MLP obs -> H -> H -> A (tanh) and one state-independent log-std vector. Anything the
+    policy needs to act must be a Parameter or a buffer: evaluations and checkpoints rebuild it from its state_dict."""
 
     def __init__(self, obs_dim: int, act_dim: int, hidden_size: int):
         super().__init__()
@@ -218,7 +219,8 @@ def sample_action(mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
 
 
 def act(actor: Actor, obs: np.ndarray) -> np.ndarray:
-    """The rollout's actions for a batch of observations [E, obs_dim]: samples of the current policy."""
+    """The rollout's actions for a batch of observations [E, obs_dim]: samples of the current policy.
+    Evaluations act through `Evaluator` below (the same `sample_action`), not through this function."""
     with torch.inference_mode():
         mean, log_std = actor(torch.as_tensor(obs, device=actor.log_std.device))
         return sample_action(mean, log_std).cpu().numpy()
@@ -270,10 +272,10 @@ def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.op
     return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
 
 
-def optimizer_step(params: nn.Parameter, optimizer: torch.optim.Optimizer, args: Args) -> None:
+def optimizer_step(flat_params: nn.Parameter, optimizer: torch.optim.Optimizer, args: Args) -> None:
     """One step on the gradients in .grad: the global gradient-norm clip, then the optimizer (CleanRL).
     No side effects here either: the fast path's checks call it twice (on float64 copies), not once a step."""
-    nn.utils.clip_grad_norm_([params], args.max_grad_norm)
+    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)
     optimizer.step()
 
 
@@ -312,8 +314,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
     actor = Actor(obs_dim, act_dim, args.hidden_size).to(device)
     critic = make_critic(obs_dim).to(device)
-    params = share_one_buffer([*actor.parameters(), *critic.parameters()])
-    optimizer = make_optimizer([params], args.learning_rate)
+    flat_params = share_one_buffer([*actor.parameters(), *critic.parameters()])
+    optimizer = make_optimizer([flat_params], args.learning_rate)
     all_params = [*actor.parameters(), *critic.parameters()]
     run.parameters(count_parameters(actor, critic), checkpoint is None)
     # rollout storage, numpy: the env takes and gives numpy (and the fast acting path runs in numpy)
@@ -336,10 +338,11 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         elif args.lr_schedule == "cyclic":
             frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle
             if update > 1 and (update - 1) % updates_per_cycle == 0:
-                optimizer = make_optimizer([params], args.learning_rate)  # a new cycle: fresh Adam moments
+                optimizer = make_optimizer([flat_params], args.learning_rate)  # a new cycle: fresh Adam moments
         else:
             frac = 1.0
-        optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+        for group in optimizer.param_groups:  # one group here (the flat buffer); an edit may make more
+            group["lr"] = frac * args.learning_rate
 
         # --- rollout: the weights do not change during it; values and log-probs are computed for the
         # whole batch afterwards ---
@@ -382,10 +385,11 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
                 # replaces the two calls below by the same step by hand, checked against those two functions (which
                 # then run only inside the checks: log or count things here in the loop, not inside them).
                 if fast.gradients:
-                    loss, parts = fast.update(actor, critic, params, optimizer, minibatch, args, global_step)
+                    loss, parts = fast.update(actor, critic, flat_params, optimizer, minibatch, args, global_step)
                 if not fast.gradients:  # the definition (also right after the fast path switched itself off)
+                    flat_params.grad.zero_()  # CleanRL's optimizer.zero_grad(), in place: the nets' .grad are views of it
                     loss, parts = autograd_gradients(actor, critic, all_params, minibatch, args)
-                    optimizer_step(params, optimizer, args)
+                    optimizer_step(flat_params, optimizer, args)
                 ratios.append(parts["ratio"])
 
             # CleanRL's diagnostics, from the epoch's last minibatch

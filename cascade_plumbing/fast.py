@@ -592,6 +592,10 @@ class FastPaths:
             with untouched_random_streams():  # an edit may draw random numbers: not from training's streams
                 reference_loss, reference_parts = autograd_gradients(actor64, critic64, params, minibatch, args)
                 reference = [p.grad.clone() for p in params]
+                # NaN where the hand-written update writes nothing: a parameter it does not know of (one an edit
+                # added) then reads as a disagreement here, not as autograd's gradient left in the buffer
+                for param in params:
+                    param.grad.fill_(math.nan)
                 with torch.no_grad():
                     fast_loss, fast_parts = self.fast_gradients(actor64, critic64, minibatch, args)
                 fast = [p.grad for p in params]
@@ -660,12 +664,17 @@ class FastPaths:
             moves = []
             for step_function in (optimizer_step, None):
                 param, twin = float64_optimizer(optimizer)
-                before = param.detach().clone()
+                before, gradient = param.detach().clone(), param.grad
                 param.grad.copy_(flat_gradient * scale)
                 if step_function is None:
                     fast_optimizer_step(param, twin, args.max_grad_norm)
                 else:
                     step_function(param, twin, args)
+                    if param.grad is not gradient:  # the nets' .grad are views of this one tensor: it must stay
+                        return "optimizer_step replaces or removes the .grad of the flat parameter buffer " \
+                               "(optimizer.zero_grad() sets it to None), which every net's .grad is a view of, so " \
+                               "section 1's update cannot run as edited (the loop already zeroes that buffer in " \
+                               "place before each autograd_gradients: drop the zero_grad or pass set_to_none=False)"
                 moves.append(param.detach() - before)
             error = relative_error([moves[1]], [moves[0]])
             if not error <= FAST_PATH_TOLERANCE:

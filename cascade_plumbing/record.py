@@ -103,12 +103,12 @@ class RunRecord:
 
     def log_fallbacks(self, fallback: torch.Tensor, contribution: torch.Tensor, global_step: int) -> None:
         """The fallback metrics: means over a batch of states of each net's lambda [n-1, B] and share [n, B]."""
-        mean_weight = contribution.mean(1)
+        mean_contribution = contribution.mean(1)
         for j, lam in enumerate(fallback.mean(1).tolist()):
             self.writer.add_scalar(f"cascade/fallback/net_{j + 2}", lam, global_step)
-        for j, w in enumerate(mean_weight.tolist()):
+        for j, w in enumerate(mean_contribution.tolist()):
             self.writer.add_scalar(f"cascade/contribution/net_{j + 1}", w, global_step)
-        self.writer.add_scalar("cascade/fallback_product", mean_weight[0].item(), global_step)
+        self.writer.add_scalar("cascade/fallback_product", mean_contribution[0].item(), global_step)
 
     def fast_path_off(self, message: str, step: int) -> None:
         """A fast path failed its check: one line on stderr (also with --quiet), a TensorBoard text."""

@@ -26,6 +26,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FLAGSHIP, FAST, DISCRETE = "cascade_ppo_continuous.py", "cascade_plumbing/fast.py", "cascade_ppo_discrete.py"
 SAC, DDPG = "cascade_sac.py", "cascade_ddpg.py"
+HACKING_TEST = "tests/test_hacking.py::test_an_edit_of_section_1_is_never_silently_wrong"
 OPTIMIZER_RATES_TEST = "tests/test_sac_ddpg.py::test_each_optimizer_runs_at_its_learning_rate"
 # the independent references (a plain loop over the nets, CleanRL's formulas, autograd) first; then the hacking
 # tests, which also fail when section 1 and the fast paths no longer agree
@@ -92,7 +93,7 @@ MUTATIONS = [
              "return action_distribution(mean, log_std).sample()", "return mean.clone()", LOOP_TESTS),
     # the PPO baseline of Fig. 2 and, with a cyclic LR, of Fig. 3
     Mutation("baseline: Adam kept across LR cycles", "ppo_baseline.py",
-             "optimizer = make_optimizer([params], args.learning_rate)  # a new cycle: fresh Adam moments", "pass",
+             "optimizer = make_optimizer([flat_params], args.learning_rate)  # a new cycle: fresh Adam moments", "pass",
              ("tests/test_papers_code.py::test_cyclic_baseline_restarts_adam_every_cycle",)),
     Mutation("baseline: the LR cycle never restarts", "ppo_baseline.py",
              "frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle",
@@ -360,6 +361,16 @@ MUTATIONS += [
              "mean, log_std, fallback = policy(torch.as_tensor(normalize_obs(raw_obs, stats, 0)))", EVAL_INPUT_TESTS),
     Mutation("plumbing: evaluation normalizes by the variance, not the std", "cascade_plumbing/envs.py",
              "obs = (obs - mean) / np.sqrt(var + NORM_EPS)", "obs = (obs - mean) / (var + NORM_EPS)", EVAL_INPUT_TESTS),
+    # a third review (2026-12-04): edits of section 1 that the checks missed before
+    Mutation("fast: the check leaves autograd's gradients where the hand-written update writes none", FAST,
+             "param.grad.fill_(math.nan)", "pass", (HACKING_TEST + "[cascade_ppo_continuous-new parameter]",
+                                                                  HACKING_TEST + "[ppo_baseline-new parameter (baseline)]")),
+    *[Mutation(f"{script[:-3]} loop: .grad not zeroed before autograd_gradients", script,
+               "flat_params.grad.zero_()  # CleanRL's optimizer.zero_grad(), in place: the nets' .grad are views of it",
+               "pass", (HACKING_TEST + f"[{script[:-3]}-backward]",)) for script in (FLAGSHIP, "ppo_baseline.py")],
+    Mutation("fast: an optimizer_step that drops the .grad buffer passes the check", FAST,
+             "if param.grad is not gradient:", "if False:",
+             ("tests/test_hacking.py::test_zero_grad_that_drops_the_gradient_buffer_is_named_not_silent",)),
 ]
 
 

@@ -105,7 +105,7 @@ EDITS = {
                     " + 0.1 * ((ratio - 1) - logratio).mean()")],
     "adamw": [("return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)",
                "return torch.optim.AdamW(params, lr=learning_rate, eps=1e-5, weight_decay=0.1, fused=True)")],
-    "no gradient clip": [("    nn.utils.clip_grad_norm_([params], args.max_grad_norm)\n", "")],
+    "no gradient clip": [("    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n", "")],
     "truncated noise": [("return action_distribution(mean, log_std).sample()",
                          "return mean + log_std.exp() * torch.randn_like(mean).clamp(-2.5, 2.5)")],
     # a second review (2026-12-03): an edit that draws random numbers; CleanRL's float32 conversion in `act`
@@ -114,6 +114,23 @@ EDITS = {
                                         "        mean, log_std, _, _ = actor(obs)\n")],
     "float32 observations in act": [("actor(torch.as_tensor(obs, device=actor.log_std.device))",
                                      "actor(torch.Tensor(obs).to(actor.log_std.device))")],
+    # a third review (2026-12-04): a parameter the hand-written update does not know of (here a learned shift of
+    # the mean, zero at first, so the acting check cannot see it before it moves) must train, not keep a zero
+    # gradient; and CleanRL's habit of accumulating with loss.backward() must give autograd_gradients' gradients
+    "new parameter": [("        self.log_std = nn.Parameter(torch.empty(0, act_dim))\n",
+                       "        self.log_std = nn.Parameter(torch.empty(0, act_dim))\n"
+                       "        self.shift = nn.Parameter(torch.zeros(act_dim))\n"),
+                      ("        mean = (contribution[..., None] * means).sum(0)  # C_n = sum_i w_i b_i",
+                       "        mean = (contribution[..., None] * means).sum(0) + self.shift")],
+    "new parameter (baseline)": [("        self.log_std = nn.Parameter(torch.zeros(1, act_dim))\n",
+                                  "        self.log_std = nn.Parameter(torch.zeros(1, act_dim))\n"
+                                  "        self.shift = nn.Parameter(torch.zeros(1, act_dim))\n"),
+                                 ("        mean = self.mean_net(obs, hidden)\n",
+                                  "        mean = self.mean_net(obs, hidden) + self.shift\n")],
+    "backward": [("        grads = torch.autograd.grad(loss, params, allow_unused=True)",
+                  "        loss.backward()"),
+                 ("    for param, grad in zip(params, grads):\n"
+                  "        param.grad.copy_(grad) if grad is not None else param.grad.zero_()\n", "")],
     # logged only (--ent-coef 0): the logged entropy must be section 1's
     "entropy per dimension": [("entropy_loss = dist.entropy().sum(1).mean()", "entropy_loss = dist.entropy().mean()")],
 }
@@ -144,11 +161,19 @@ CASES = [  # script, edit, the parts the warnings must name (in order)
 ]
 LOGGED_ONLY = {"entropy per dimension": "losses/entropy"}  # edits that change a logged value, not the parameters
 CASES += [
+    ("cascade_ppo_continuous.py", "new parameter", ["gradient of actor.shift", "draws other actions than act()"]),
+    ("ppo_baseline.py", "new parameter (baseline)", ["gradient of actor.shift", "draws other actions than act()"]),
+    # the same gradients as autograd.grad: nothing to switch off, and --autograd (which zeroes .grad before each
+    # minibatch, as CleanRL's zero_grad) must not accumulate them over minibatches
+    *[(script, "backward", []) for script in ("cascade_ppo_continuous.py", "ppo_baseline.py")],
     ("cascade_ppo_continuous.py", "noisy observations in the loss", ["autograd_gradients"]),
     # no change of the math: the numpy path is switched off, saying why, and the run is act()'s
     ("cascade_ppo_continuous.py", "float32 observations in act", ["needs act to keep the observation's dtype"]),
 ]
-NO_EFFECT = {"squared features", "float32 observations in act"}  # nothing to compare with the unedited result
+# nothing to compare with the unedited result: a new shape or parameter (equal to its --autograd twin is the check),
+# or the same math written otherwise
+NO_EFFECT = {"squared features", "float32 observations in act", "new parameter", "new parameter (baseline)",
+             "backward"}
 
 
 TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
@@ -321,3 +346,19 @@ def test_an_update_stopped_early_is_checked_all_the_same(tmp_path, monkeypatch):
     updates = list(range(256, 2049, 256))  # global_step of each update
     assert sorted(set(checked)) == updates  # each update's (early) end is checked at the next update's start...
     assert checked.count(256) == 4  # ...and the first update, on its 4 minibatches (one epoch): all of them
+
+
+@pytest.mark.parametrize("script", ["cascade_ppo_continuous.py", "ppo_baseline.py"])
+def test_zero_grad_that_drops_the_gradient_buffer_is_named_not_silent(script, tmp_path, capsys):
+    """CleanRL's `optimizer.zero_grad()`, added after the step: it sets the flat buffer's .grad, which every net's
+    .grad is a view of, to None, so section 1's next step would have no gradient. The fast path's check says so
+    in its line, and neither path trains on without gradients: the run stops at the loop's next zeroing."""
+    module = edited_copy(script, [("    optimizer.step()\n", "    optimizer.step()\n    optimizer.zero_grad()\n")],
+                         tmp_path)
+    for autograd in (False, True):
+        capsys.readouterr()
+        with pytest.raises(AttributeError, match="NoneType"):
+            train_copy(module, script, tmp_path / f"runs_{autograd}", autograd=autograd)
+        warnings = [line for line in capsys.readouterr().err.splitlines() if "fast path check" in line]
+        assert len(warnings) == (0 if autograd else 1), warnings
+        assert autograd or "optimizer_step replaces or removes the .grad of the flat parameter buffer" in warnings[0]

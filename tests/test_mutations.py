@@ -15,5 +15,8 @@ def test_mutation_still_applies(mutation):
         assert f.read().count(mutation.old) == 1, f"{mutation.name}: update its text in tests/mutations.py"
     for test in mutation.tests:
         path, _, name = test.partition("::")
+        name, _, case = name.partition("[")  # a parametrized test's case: "<script>-<edit>]" or "<script>]"
         with open(os.path.join(ROOT, path)) as f:
-            assert not name or f"def {name}(" in f.read(), test
+            source = f.read()
+        assert not name or f"def {name}(" in source, test
+        assert not case or f'"{case.rstrip("]").split("-", 1)[-1]}"' in source, test
