@@ -291,7 +291,9 @@ class CascadeActor(nn.Module):
     def forward(self, obs: torch.Tensor, cache: dict | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """obs [B, obs_dim] -> the ensemble's mean [B, A] and log-std [B, A], each net's fallback
-        l_i = sigmoid(z_i) [n-1, B] (nets 2..n) and contribution w_i [n, B]."""
+        l_i = sigmoid(z_i) [n-1, B] (nets 2..n) and contribution w_i [n, B]. `cache` is section 2's: it
+        receives the activations, means, fallback logits and contributions (a forward that no longer fills them
+        makes the hand-written backward raise, and its check switches it off)."""
         if self.size == 0:  # the empty stack (evaluated at step 0, before net 1 exists): N(0, 1)
             zeros = obs.new_zeros(obs.shape[0], self.act_dim)
             return zeros, zeros, obs.new_zeros(0, obs.shape[0]), obs.new_zeros(0, obs.shape[0])
@@ -647,6 +649,27 @@ def policy_of(actor: CascadeActor, kind: int) -> Callable:
     return full_policy(actor) if kind == 0 else member_policy(actor, kind - 1)
 
 
+# ==============================================================================================
+# 2. FAST PATHS: the same acting and update, faster (cascade_plumbing/fast.py), checked against section 1
+# ==============================================================================================
+# Acting runs a numpy copy of the forward and samples the Gaussian in numpy; the update writes its
+# gradients by hand. Neither is a definition: at every rollout start `act` above (the forward and
+# `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the last minibatch of
+# every update (every minibatch of an iteration's first) `autograd_gradients` above (loss, parts, gradients)
+# and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
+# fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
+# continues exactly as --autograd runs it.
+def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
+    return FastPaths(not args.autograd, numpy_cascade_policy, cascade_ppo_gradients,
+                     None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
+
+
+# ==============================================================================================
+# 3. PLUMBING: environments, evaluation, checkpoints, progress, command line
+# ==============================================================================================
+# ----------------------------------------------------------------------------------------------
+# Evaluating a frozen copy (in the evaluation worker, or inline), and videos
+# ----------------------------------------------------------------------------------------------
 def frozen_actor(obs_dim: int, act_dim: int, args: Args, size: int, state: dict) -> CascadeActor:
     """A `size`-net CascadeActor holding `state`; building it draws no number from the caller's torch RNG
     (training's, when evaluations run inline)."""
@@ -676,24 +699,6 @@ def record_video(actor: CascadeActor, stats, env_id: str, path: str, determinist
     return float(returns[0])
 
 
-# ==============================================================================================
-# 2. FAST PATHS: the same acting and update, faster (cascade_plumbing/fast.py), checked against section 1
-# ==============================================================================================
-# Acting runs a numpy copy of the forward and samples the Gaussian in numpy; the update writes its
-# gradients by hand. Neither is a definition: at every rollout start `act` above (the forward and
-# `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the last minibatch of
-# every update (every minibatch of an iteration's first) `autograd_gradients` above (loss, parts, gradients)
-# and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
-# fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
-# continues exactly as --autograd runs it.
-def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    return FastPaths(not args.autograd, numpy_cascade_policy, cascade_ppo_gradients,
-                     None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
-
-
-# ==============================================================================================
-# 3. PLUMBING: environments, evaluation, checkpoints, progress, command line
-# ==============================================================================================
 # ----------------------------------------------------------------------------------------------
 # The run's bookkeeping: TensorBoard, evaluations, checkpoints and resume, progress
 # ----------------------------------------------------------------------------------------------

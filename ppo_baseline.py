@@ -435,6 +435,32 @@ class Evaluator(EvaluationEnvs):
             return self.run_episodes(act_frozen, base_seed)
 
 
+# ==============================================================================================
+# 2. FAST PATHS: the same acting and update, faster (cascade_plumbing/fast.py), checked against section 1
+# ==============================================================================================
+# Acting runs a numpy copy of the mean net and samples the Gaussian in numpy; the update writes its
+# gradients by hand. Neither is a definition: at every rollout start `act` above (the forward and
+# `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the last minibatch of
+# every update (every minibatch of an iteration's first) `autograd_gradients` above (loss, parts, gradients)
+# and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
+# fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
+# continues exactly as --autograd runs it.
+def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
+    return FastPaths(not args.autograd, numpy_mlp_policy, mlp_ppo_gradients,
+                     None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
+
+
+# ==============================================================================================
+# 3. PLUMBING: environments, evaluation, checkpoints, progress, command line
+# ==============================================================================================
+# The envs are CleanRL's wrapper stack (cascade_plumbing/ppo.py, the flagship's stack): `make_env(env_id, gamma,
+# normalize)` for one env (raw episode statistics, action clip, obs/reward normalization, +-10 clips),
+# `make_vector_env(args)` for the --num-envs training envs.
+
+
+# ----------------------------------------------------------------------------------------------
+# Evaluating a frozen copy (in the evaluation worker, or inline), and videos
+# ----------------------------------------------------------------------------------------------
 def frozen_actor(obs_dim: int, act_dim: int, hidden_size: int, state: dict) -> Actor:
     """An Actor holding `state`; building it draws no number from the caller's torch RNG (training's, when
     evaluations run inline)."""
@@ -459,29 +485,6 @@ def record_video(actor: Actor, stats, env_id: str, path: str, deterministic: boo
     evaluator.write_video(path)
     evaluator.close()
     return float(episode_return)
-
-
-# ==============================================================================================
-# 2. FAST PATHS: the same acting and update, faster (cascade_plumbing/fast.py), checked against section 1
-# ==============================================================================================
-# Acting runs a numpy copy of the mean net and samples the Gaussian in numpy; the update writes its
-# gradients by hand. Neither is a definition: at every rollout start `act` above (the forward and
-# `sample_action`) and the numpy path draw actions from the same seeded RNG, and on the last minibatch of
-# every update (every minibatch of an iteration's first) `autograd_gradients` above (loss, parts, gradients)
-# and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
-# fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
-# continues exactly as --autograd runs it.
-def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    return FastPaths(not args.autograd, numpy_mlp_policy, mlp_ppo_gradients,
-                     None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
-
-
-# ==============================================================================================
-# 3. PLUMBING: environments, evaluation, checkpoints, progress, command line
-# ==============================================================================================
-# The envs are CleanRL's wrapper stack (cascade_plumbing/ppo.py, the flagship's stack): `make_env(env_id, gamma,
-# normalize)` for one env (raw episode statistics, action clip, obs/reward normalization, +-10 clips),
-# `make_vector_env(args)` for the --num-envs training envs.
 
 
 # ----------------------------------------------------------------------------------------------
