@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn as nn
+import torch.optim.optimizer as optimizer_module
 
 
 def share_one_buffer(params: list[nn.Parameter]) -> nn.Parameter:
@@ -87,9 +88,12 @@ def adam_step(optimizer: torch.optim.Adam) -> None:
 
 def plain_fused_adam(optimizer: torch.optim.Optimizer) -> bool:
     """Is `optimizer` exactly what the direct kernel call in `adam_step` computes: torch's Adam itself (not a
-    subclass such as AdamW), fused, without amsgrad, maximize or decoupled weight decay?"""
+    subclass such as AdamW), fused, without amsgrad, maximize, decoupled weight decay or step hooks?"""
     group = optimizer.param_groups[0]
+    hooks = (optimizer._optimizer_step_pre_hooks, optimizer._optimizer_step_post_hooks,
+             optimizer_module._global_optimizer_pre_hooks, optimizer_module._global_optimizer_post_hooks)
     return (type(optimizer) is torch.optim.Adam and len(optimizer.param_groups) == 1 and group["fused"]
+            and not any(hooks)  # step() runs them, the kernel call would not
             and not (group["amsgrad"] or group["maximize"] or group["capturable"] or group["differentiable"]
                      or group.get("decoupled_weight_decay", False)))
 
@@ -390,14 +394,22 @@ def numpy_gaussian_sampler(policy: Callable[[np.ndarray], tuple[np.ndarray, np.n
     per env step costs ~10-20 us in a rollout loop, a cold path between two MuJoCo steps): torch fills such
     tensors one number after the other, so the draws and the RNG state afterwards are those of one call per
     step; `bulk_draws_match` confirms it on the running torch, else every call draws its own."""
-    noise_np, index = np.empty((0, 0)), 0
+    noise_np, index, state_after_draw = np.empty((0, 0)), 0, b""
 
     def sample(obs: np.ndarray) -> np.ndarray:
-        nonlocal noise_np, index
+        nonlocal noise_np, index, state_after_draw
         mean, log_std = policy(obs)
         if index == len(noise_np) or noise_np.shape[1:] != mean.shape or noise_np.dtype != mean.dtype:
             rows = calls if index == 0 and calls > 1 and bulk_draws_match(mean.shape, mean.dtype) else 1
             noise_np, index = standard_normals(rows, mean.shape, mean.dtype), 0
+            state_after_draw = torch.get_rng_state().numpy().tobytes() if rows > 1 else b""
+        elif index == len(noise_np) - 1 and state_after_draw:
+            # the bulk draw is only act()'s step-by-step draws if nothing else drew from torch's RNG in between
+            # (an edit of the rollout loop): checked once, at the last step, where any such draw shows
+            if torch.get_rng_state().numpy().tobytes() != state_after_draw:
+                raise RuntimeError("the rollout drew from torch's random numbers beside the policy's sampling (an "
+                                   "edit of the loop?): the numpy path draws a rollout's action noise at its first "
+                                   "step, so this rollout's noise came in another order than act() draws it")
         noise = noise_np[index]
         index += 1
         return mean + np.exp(log_std) * noise
@@ -458,6 +470,9 @@ def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, t
     param = nn.Parameter(params[0].detach().double())
     param.grad = torch.zeros_like(param)
     twin = copy.copy(optimizer)  # its class and settings; the groups and the state are the copy's own below
+    # copy.copy keeps only what __getstate__ returns: the step hooks (register_step_post_hook) are carried over
+    twin._optimizer_step_pre_hooks = collections.OrderedDict(optimizer._optimizer_step_pre_hooks)
+    twin._optimizer_step_post_hooks = collections.OrderedDict(optimizer._optimizer_step_post_hooks)
     twin.param_groups = [{**optimizer.param_groups[0], "params": [param]}]
     twin.state = collections.defaultdict(dict)
     for key, value in optimizer.state.get(params[0], {}).items():
@@ -540,8 +555,13 @@ class FastPaths:
             obs = np.tile(obs, (-(-CHECK_ROWS // max(len(obs), 1)), 1))
             with untouched_random_streams():
                 torch.manual_seed(CHECK_SEED + step)
+                streams = np.random.get_state()[1].tobytes(), random.getstate()
                 try:
                     reference = torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64)
+                    if (np.random.get_state()[1].tobytes(), random.getstate()) != streams:
+                        self.switch_off("acting", "act() draws from numpy's or Python's global random numbers, which "
+                                        "the numpy acting path (torch's Gaussian noise only) does not", step)
+                        return definition
                 except Exception as exc:
                     self.switch_off("acting", f"act() raised on the check's float64 copy of the actor ({describe(exc)});"
                                     " the check needs act to keep the observation's dtype (torch.as_tensor(obs), not"
@@ -582,6 +602,13 @@ class FastPaths:
         --autograd runs) on one minibatch, on the same float64 copies; then the fast optimizer
         step with section 1's `optimizer_step`, on float64 copies of `optimizer`, with those gradients."""
         autograd_gradients, optimizer_step = self.definition
+        hooked = [name for module, role in ((actor, "actor"), (critic, "critic"))
+                  for name, param in module.named_parameters(prefix=role)
+                  if param._backward_hooks or getattr(param, "_post_accumulate_grad_hooks", None)]
+        if hooked:  # the hand-written gradients apply none, and the check's deep copies would not carry them
+            self.switch_off("gradients", f"{hooked[0]} has a gradient hook (register_hook), which the hand-written "
+                            "update does not apply", step)
+            return
         start = time.perf_counter()
         try:
             actor64, critic64 = self.float64_twin("actor", actor, step), self.float64_twin("critic", critic, step)

@@ -371,6 +371,18 @@ MUTATIONS += [
     Mutation("fast: an optimizer_step that drops the .grad buffer passes the check", FAST,
              "if param.grad is not gradient:", "if False:",
              ("tests/test_hacking.py::test_zero_grad_that_drops_the_gradient_buffer_is_named_not_silent",)),
+    # a probe of the checks (2026-12-04)
+    Mutation("fast: parameters' gradient hooks ignored", FAST, "        if hooked:  # the hand-written gradients",
+             "        if False:  # the hand-written gradients", (HACKING_TEST + "[cascade_ppo_continuous-gradient hook]",)),
+    Mutation("fast: the kernel call skips the optimizer's step hooks", FAST,
+             "            and not any(hooks)  # step() runs them, the kernel call would not\n", "",
+             (HACKING_TEST + "[cascade_ppo_continuous-optimizer step hook]",)),
+    Mutation("fast: act drawing numpy's random numbers passes the acting check", FAST,
+             "if (np.random.get_state()[1].tobytes(), random.getstate()) != streams:", "if False:",
+             (HACKING_TEST + "[cascade_ppo_continuous-epsilon-greedy act]",)),
+    Mutation("fast: torch draws in the rollout loop pass unseen", FAST,
+             "if torch.get_rng_state().numpy().tobytes() != state_after_draw:", "if False:",
+             ("tests/test_hacking.py::test_torch_random_numbers_drawn_in_the_rollout_loop_are_named",)),
 ]
 
 

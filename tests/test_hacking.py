@@ -131,6 +131,25 @@ EDITS = {
                   "        loss.backward()"),
                  ("    for param, grad in zip(params, grads):\n"
                   "        param.grad.copy_(grad) if grad is not None else param.grad.zero_()\n", "")],
+    # a probe of the checks (2026-12-04): a gradient hook (the check's deep copies dropped it, and the hand-written
+    # update never applies one), an optimizer step hook (the kernel call skipped it, the check's copy too), and
+    # epsilon-greedy exploration in act from numpy's random numbers (the check restored numpy's stream)
+    "gradient hook": [("                self._replace(name, nn.Parameter(new))",
+                       "                hooked = nn.Parameter(new)\n"
+                       "                hooked.register_hook(lambda g: g.clamp(-1e-3, 1e-3))\n"
+                       "                self._replace(name, hooked)")],
+    "gradient hook (baseline)": [("        self.log_std = nn.Parameter(torch.zeros(1, act_dim))\n",
+                                  "        self.log_std = nn.Parameter(torch.zeros(1, act_dim))\n"
+                                  "        self.log_std.register_hook(lambda g: g.clamp(-1e-3, 1e-3))\n")],
+    "optimizer step hook": [("    return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)",
+                             "    optimizer = torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)\n"
+                             "    optimizer.register_step_post_hook(lambda opt, args, kwargs: [\n"
+                             "        p.data.mul_(1 - group['lr'] * 0.1) for group in opt.param_groups for p in group['params']])\n"
+                             "    return optimizer")],
+    "epsilon-greedy act": [("        mean, log_std, _, _ = actor(torch.as_tensor(obs, device=actor.log_std.device))",
+                            "        if np.random.rand() < 0.1:\n"
+                            "            return np.random.uniform(-1, 1, (len(obs), actor.act_dim)).astype(np.float32)\n"
+                            "        mean, log_std, _, _ = actor(torch.as_tensor(obs, device=actor.log_std.device))")],
     # logged only (--ent-coef 0): the logged entropy must be section 1's
     "entropy per dimension": [("entropy_loss = dist.entropy().sum(1).mean()", "entropy_loss = dist.entropy().mean()")],
 }
@@ -166,6 +185,10 @@ CASES += [
     # the same gradients as autograd.grad: nothing to switch off, and --autograd (which zeroes .grad before each
     # minibatch, as CleanRL's zero_grad) must not accumulate them over minibatches
     *[(script, "backward", []) for script in ("cascade_ppo_continuous.py", "ppo_baseline.py")],
+    ("cascade_ppo_continuous.py", "gradient hook", ["has a gradient hook"]),
+    ("ppo_baseline.py", "gradient hook (baseline)", ["has a gradient hook"]),
+    *[(script, "optimizer step hook", []) for script in ("cascade_ppo_continuous.py", "ppo_baseline.py")],
+    ("cascade_ppo_continuous.py", "epsilon-greedy act", ["act() draws from numpy's or Python's global random"]),
     ("cascade_ppo_continuous.py", "noisy observations in the loss", ["autograd_gradients"]),
     # no change of the math: the numpy path is switched off, saying why, and the run is act()'s
     ("cascade_ppo_continuous.py", "float32 observations in act", ["needs act to keep the observation's dtype"]),
@@ -362,3 +385,16 @@ def test_zero_grad_that_drops_the_gradient_buffer_is_named_not_silent(script, tm
         warnings = [line for line in capsys.readouterr().err.splitlines() if "fast path check" in line]
         assert len(warnings) == (0 if autograd else 1), warnings
         assert autograd or "optimizer_step replaces or removes the .grad of the flat parameter buffer" in warnings[0]
+
+
+def test_torch_random_numbers_drawn_in_the_rollout_loop_are_named(tmp_path, capsys):
+    """An edit of the rollout loop that draws from torch's RNG (sensor noise on the observations): the numpy path
+    draws a rollout's action noise at its first step, so the draws come in another order than act()'s step by step.
+    The first such rollout is named in one warning line and every later one acts through act(), as --autograd."""
+    module = edited_copy("cascade_ppo_continuous.py", [(
+        "next_obs = next_obs.astype(np.float32)",
+        "next_obs = (next_obs + 0.01 * torch.randn(next_obs.shape).numpy()).astype(np.float32)")], tmp_path)
+    capsys.readouterr()
+    _, messages = train_copy(module, "cascade_ppo_continuous.py", tmp_path / "runs")
+    assert len(messages) == 1 and "fast path check at global_step=0" in messages[0], messages
+    assert "the rollout drew from torch's random numbers" in messages[0], messages[0]
