@@ -630,7 +630,7 @@ class Evaluator(EvaluationEnvs):
             return action.numpy()
 
         with torch.random.fork_rng(devices=[]):  # the action noise: sample_action on a stream of its own
-            torch.manual_seed(base_seed)
+            torch.default_generator.manual_seed(base_seed)  # the CPU's only: a GPU run's stream is untouched
             returns = self.run_episodes(act_frozen, base_seed)
         return returns, np.stack([np.stack(f).std(0) for f in fallbacks])
 
@@ -658,9 +658,9 @@ def policy_of(actor: CascadeActor, kind: int) -> Callable:
 # every update (every minibatch of an iteration's first) `autograd_gradients` above (loss, parts, gradients)
 # and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
 # fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
-# continues exactly as --autograd runs it.
+# continues exactly as --autograd runs it. On the CPU only: on a GPU, act() draws from the CUDA generator.
 def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    return FastPaths(not args.autograd, numpy_cascade_policy, cascade_ppo_gradients,
+    return FastPaths(not (args.autograd or (args.cuda and torch.cuda.is_available())), numpy_cascade_policy, cascade_ppo_gradients,
                      None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
 
 
@@ -845,7 +845,7 @@ def finished(args: Args, checkpoint: dict) -> bool:
 def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") -> CascadeActor:
     actor = frozen_actor(checkpoint["obs_dim"], checkpoint["act_dim"], Args(**checkpoint["args"]),
                          checkpoint["actor_size"], checkpoint["actor"])
-    actor.freeze_below(checkpoint["num_frozen"])
+    actor.num_frozen = checkpoint["num_frozen"]  # as saved: through an edited freeze_below it would change twice
     return actor.to(device)
 
 

@@ -625,7 +625,7 @@ def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") 
         actor.add_base_net()
     torch.set_rng_state(rng)
     actor.load_state_dict(checkpoint["actor"])
-    actor.freeze_below(checkpoint["num_frozen"])
+    actor.num_frozen = checkpoint["num_frozen"]  # as saved: through an edited freeze_below it would change twice
     return actor.to(device)
 
 

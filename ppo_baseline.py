@@ -431,7 +431,7 @@ class Evaluator(EvaluationEnvs):
             return action.numpy()
 
         with torch.random.fork_rng(devices=[]):  # the action noise: sample_action on a stream of its own
-            torch.manual_seed(base_seed)
+            torch.default_generator.manual_seed(base_seed)  # the CPU's only: a GPU run's stream is untouched
             return self.run_episodes(act_frozen, base_seed)
 
 
@@ -444,9 +444,9 @@ class Evaluator(EvaluationEnvs):
 # every update (every minibatch of an iteration's first) `autograd_gradients` above (loss, parts, gradients)
 # and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
 # fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
-# continues exactly as --autograd runs it.
+# continues exactly as --autograd runs it. On the CPU only: on a GPU, act() draws from the CUDA generator.
 def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    return FastPaths(not args.autograd, numpy_mlp_policy, mlp_ppo_gradients,
+    return FastPaths(not (args.autograd or (args.cuda and torch.cuda.is_available())), numpy_mlp_policy, mlp_ppo_gradients,
                      None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
 
 

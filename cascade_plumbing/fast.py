@@ -728,7 +728,7 @@ class FastPaths:
             stopped_early = update_step is not None and index < expected_last
             index, every = 0, optimizer is not self._fully_checked
             self._fully_checked = optimizer
-            check = every or stopped_early
+            check = every or stopped_early or expected_last == 0  # (one minibatch per update: it is the last)
         self._minibatch = (step, index, every)
         if check and self.definition is not None:
             self.check_update(actor, critic, optimizer, minibatch, args, step)

@@ -176,7 +176,7 @@ MUTATIONS += [Mutation(f"{label}: {name}", script, old, new, tests)
                    "action = action_distribution(mean, log_std).mean if not deterministic else"))]
 # found by the same independent probe
 MUTATIONS += [Mutation(f"{label}: a resumed actor forgets its frozen nets", script,
-                       '    actor.freeze_below(checkpoint["num_frozen"])\n', "",
+                       'actor.num_frozen = checkpoint["num_frozen"]', "pass",
                        ("tests/test_checkpoints.py::test_freeze_previous_survives_a_resume",))
               for label, script in (("flagship loop", FLAGSHIP), ("discrete loop", DISCRETE))]
 # SAC and DDPG: the same bugs planted in the lines the two scripts share
@@ -383,6 +383,12 @@ MUTATIONS += [
     Mutation("fast: torch draws in the rollout loop pass unseen", FAST,
              "if torch.get_rng_state().numpy().tobytes() != state_after_draw:", "if False:",
              ("tests/test_hacking.py::test_torch_random_numbers_drawn_in_the_rollout_loop_are_named",)),
+    Mutation("fast: one minibatch per update checked only at each optimizer's first update", FAST,
+             "check = every or stopped_early or expected_last == 0", "check = every or stopped_early",
+             ("tests/test_hacking.py::test_one_minibatch_per_update_is_checked_at_every_update",)),
+    Mutation("flagship: a resume passes the saved frozen count through freeze_below again", FLAGSHIP,
+             'actor.num_frozen = checkpoint["num_frozen"]', 'actor.freeze_below(checkpoint["num_frozen"])',
+             ("tests/test_hacking.py::test_a_resumed_actor_keeps_its_saved_frozen_count_through_an_edited_freeze_below",)),
 ]
 
 

@@ -398,3 +398,40 @@ def test_torch_random_numbers_drawn_in_the_rollout_loop_are_named(tmp_path, caps
     _, messages = train_copy(module, "cascade_ppo_continuous.py", tmp_path / "runs")
     assert len(messages) == 1 and "fast path check at global_step=0" in messages[0], messages
     assert "the rollout drew from torch's random numbers" in messages[0], messages[0]
+
+
+ONE_MINIBATCH = dict(env_id="Hopper-v4", num_steps=256, num_minibatches=1, update_epochs=1, eval_every=0,
+                     checkpoint_every=0, quiet=True)
+ONE_MINIBATCH_BUDGET = {"cascade_ppo_continuous.py": dict(n=1, k=1024), "ppo_baseline.py": dict(total_timesteps=1024)}
+
+
+@pytest.mark.parametrize("script", ["cascade_ppo_continuous.py", "ppo_baseline.py"])
+def test_one_minibatch_per_update_is_checked_at_every_update(script, tmp_path, capsys):
+    """With --num-minibatches 1 --update-epochs 1 an update's one minibatch is also its last, so every update is
+    checked (a probe, 2026-12-04: only each optimizer's first was). The edit matters only once the policy has moved
+    (a penalty on log-stds beyond 1e-4, zero at the start), so the first update's check cannot see it."""
+    module = edited_copy(script, [("loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef",
+                                   "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef"
+                                   " + 10.0 * torch.relu(log_std.abs().max() - 1e-4)")], tmp_path)
+    finals = {}
+    for autograd in (False, True):
+        track_dir = tmp_path / f"runs_{autograd}"
+        capsys.readouterr()
+        result = module.train(module.Args(**ONE_MINIBATCH, **ONE_MINIBATCH_BUDGET[script], track_dir=str(track_dir),
+                                          autograd=autograd))
+        finals[autograd] = final_parameters(only_run_dir(track_dir))
+        if not autograd:
+            assert any("computes another loss than autograd_gradients" in m for m in result["fast_paths"].messages), \
+                result["fast_paths"].messages
+    assert_close_parameters(finals[False], finals[True], ROUNDING)
+
+
+def test_a_resumed_actor_keeps_its_saved_frozen_count_through_an_edited_freeze_below(tmp_path):
+    """The checkpoint holds the frozen count freeze_below set; a resume restores that count as saved, not through
+    freeze_below again (a probe: an edit of freeze_below was applied twice after a resume)."""
+    module = edited_copy("cascade_ppo_continuous.py", [("        self.num_frozen = num_frozen\n",
+                                                        "        self.num_frozen = max(num_frozen - 1, 0)\n")], tmp_path)
+    result = module.train(module.Args(**TINY_ARGS, n=3, k=256, freeze_previous=True, track_dir=str(tmp_path / "runs")))
+    assert result["actor"].num_frozen == 1  # the edit: net 3 trains with net 2 at the end, only net 1 is frozen
+    checkpoint = module.load_checkpoint(only_run_dir(tmp_path / "runs"))
+    assert module.actor_from_checkpoint(checkpoint).num_frozen == 1
