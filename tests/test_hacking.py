@@ -435,3 +435,14 @@ def test_a_resumed_actor_keeps_its_saved_frozen_count_through_an_edited_freeze_b
     assert result["actor"].num_frozen == 1  # the edit: net 3 trains with net 2 at the end, only net 1 is frozen
     checkpoint = module.load_checkpoint(only_run_dir(tmp_path / "runs"))
     assert module.actor_from_checkpoint(checkpoint).num_frozen == 1
+
+
+@pytest.mark.parametrize("module", [cpc, pb], ids=["cascade_ppo_continuous", "ppo_baseline"])
+def test_the_fast_paths_stay_off_on_a_gpu(module, monkeypatch):
+    """On a GPU, act() samples from the CUDA generator, which the numpy acting path (torch's CPU generator) cannot
+    reproduce: --cuda runs section 1 only. On the CPU the fast paths are on unless --autograd."""
+    assert module.make_fast_paths(module.Args()).acting and not module.make_fast_paths(module.Args(autograd=True)).acting
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    fast = module.make_fast_paths(module.Args(cuda=True))
+    assert not fast.acting and not fast.gradients
+    assert module.make_fast_paths(module.Args()).gradients  # --cuda not asked for: the CPU run keeps them
