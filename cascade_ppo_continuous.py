@@ -572,7 +572,7 @@ def train(args: Args, checkpoint: dict | None = None,
                     if fast.gradients:
                         loss, parts = fast.update(actor, critic, flat_params, optimizer, minibatch, args, global_step)
                     if not fast.gradients:  # the definition (also right after the fast path switched itself off)
-                        flat_params.grad.zero_()  # CleanRL's optimizer.zero_grad(), in place: the nets' .grad are views of it
+                        flat_params.grad.zero_()  # CleanRL's zero_grad(), in place: the nets' .grad are views of it
                         loss, parts = autograd_gradients(actor, critic, all_params, minibatch, args)
                         optimizer_step(flat_params, optimizer, args)
                     ratios.append(parts["ratio"])
@@ -660,7 +660,8 @@ def policy_of(actor: CascadeActor, kind: int) -> Callable:
 # fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
 # continues exactly as --autograd runs it. On the CPU only: on a GPU, act() draws from the CUDA generator.
 def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    return FastPaths(not (args.autograd or (args.cuda and torch.cuda.is_available())), numpy_cascade_policy, cascade_ppo_gradients,
+    on_gpu = args.cuda and torch.cuda.is_available()  # as train() chooses the device
+    return FastPaths(not (args.autograd or on_gpu), numpy_cascade_policy, cascade_ppo_gradients,
                      None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
 
 

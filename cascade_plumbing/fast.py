@@ -486,6 +486,13 @@ def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, t
     return param, twin
 
 
+def numpy_and_python_streams() -> tuple:
+    """Where numpy's and Python's global random streams stand, comparable with ==: numpy's whole state (its key
+    array changes only every 624 draws, its position with each)."""
+    _, key, position, has_gauss, cached_gaussian = np.random.get_state()
+    return key.tobytes(), position, has_gauss, cached_gaussian, random.getstate()
+
+
 @contextlib.contextmanager
 def untouched_random_streams() -> Iterator[None]:
     """Whatever runs inside draws from torch's, numpy's and Python's global random streams without moving them: a
@@ -555,10 +562,10 @@ class FastPaths:
             obs = np.tile(obs, (-(-CHECK_ROWS // max(len(obs), 1)), 1))
             with untouched_random_streams():
                 torch.manual_seed(CHECK_SEED + step)
-                streams = np.random.get_state()[1].tobytes(), random.getstate()
+                streams = numpy_and_python_streams()
                 try:
                     reference = torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64)
-                    if (np.random.get_state()[1].tobytes(), random.getstate()) != streams:
+                    if numpy_and_python_streams() != streams:
                         self.switch_off("acting", "act() draws from numpy's or Python's global random numbers, which "
                                         "the numpy acting path (torch's Gaussian noise only) does not", step)
                         return definition

@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -446,3 +447,20 @@ def test_the_fast_paths_stay_off_on_a_gpu(module, monkeypatch):
     fast = module.make_fast_paths(module.Args(cuda=True))
     assert not fast.acting and not fast.gradients
     assert module.make_fast_paths(module.Args()).gradients  # --cuda not asked for: the CPU run keeps them
+
+
+def test_an_act_drawing_one_numpy_number_mid_stream_switches_acting_off():
+    """numpy's key array changes only every 624 draws: the acting check compares numpy's whole state, so a single
+    draw by act() is seen wherever the stream stands (here one number after seeding, not at a regeneration)."""
+    actor = cpc.CascadeActor(3, 2, 4, 2, 0.5)
+    actor.add_base_net()
+
+    def act(actor, obs):
+        np.random.rand()
+        return cpc.act(actor, obs)
+
+    np.random.seed(0)
+    np.random.rand()  # the stream stands mid-block: the next draw moves only numpy's position
+    fast = cpc.make_fast_paths(cpc.Args())
+    fast.acting_function(act, actor, np.zeros((2, 3), np.float32), 0, 4)
+    assert not fast.acting and "act() draws from numpy's or Python's global random numbers" in fast.messages[0]
