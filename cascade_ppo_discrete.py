@@ -69,7 +69,7 @@ class Args:
     torch_threads: int = 1
     """torch CPU threads; 1 is fastest for these small nets"""
     cuda: bool = False
-    """use CUDA if available (small nets are usually faster on the CPU)"""
+    """run the nets on the GPU if torch sees one (small nets are usually faster on the CPU)"""
     track_dir: str = "runs"
     """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
     track: bool = False
@@ -566,8 +566,10 @@ def evaluate(actor: CascadeActor, episodes: EvaluationEpisodes, stats: tuple[np.
     `deterministic`). Returns each episode's undiscounted raw return (the paper's score is their mean) and how
     much each fallback varies within it: its std over the episode's steps, [episodes, n-1]."""
 
+    device = next(actor.parameters()).device  # the GPU in a --cuda run
+
     def logits_and_fallbacks(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        logits, fallback, _ = actor(x)
+        logits, fallback, _ = actor(x.to(device))
         return logits, fallback.T
 
     returns, fallbacks = episodes.run(logits_and_fallbacks, stats, call, deterministic)

@@ -62,7 +62,7 @@ class Args:
     torch_threads: int = 1
     """torch CPU threads; 1 is fastest for these small nets"""
     cuda: bool = False
-    """use CUDA if available (small nets are usually faster on the CPU)"""
+    """run the nets on the GPU if torch sees one (small nets are usually faster on the CPU)"""
     track_dir: str = "runs"
     """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
     track: bool = False
@@ -389,7 +389,8 @@ def evaluate(actor: nn.Module, episodes: EvaluationEpisodes, stats: tuple[np.nda
     """The policy training acts with, frozen with its observation statistics `stats`, for one episode on each of
     the separate envs of `episodes`; actions are sampled from Categorical(logits) as in training (the argmax with
     `deterministic`). Returns each episode's undiscounted raw return (the paper's score is their mean)."""
-    returns, _ = episodes.run(lambda x: (actor(x), None), stats, call, deterministic)
+    device = next(actor.parameters()).device  # the GPU in a --cuda run
+    returns, _ = episodes.run(lambda x: (actor(x.to(device)), None), stats, call, deterministic)
     return returns
 
 

@@ -31,6 +31,7 @@ own dependencies in the venv of PY; nothing of it is copied here), --whole-rando
     python benchmarks/offpolicy.py                        # Hopper-v4, all four configurations
     python benchmarks/offpolicy.py --env-id HalfCheetah-v4 --configs sac_baseline ddpg_baseline
     python benchmarks/offpolicy.py --ref HEAD~1           # this tree and an older commit, interleaved
+    python benchmarks/offpolicy.py --cuda                 # the nets on a GPU (compare with a CPU run on that machine)
     python benchmarks/offpolicy.py --configs sac_baseline --cleanrl ../cleanrl --cleanrl-python ../cleanrl/.venv/bin/python
 
 `--ref REV` also runs every configuration from an older commit (exported to a temp folder), interleaved with
@@ -76,6 +77,8 @@ class Args:
     """runs per configuration (and per tree with --ref); the table shows medians"""
     threads: int = 1
     """torch threads (--torch-threads of the scripts)"""
+    cuda: bool = False
+    """the nets on the GPU (the scripts' --cuda): timings wait for the GPU, the floor is its kernels' busy time"""
     ref: str | None = None
     """also measure every configuration at this git revision, side by side"""
     json: bool = False
@@ -108,11 +111,17 @@ class Stop(Exception):
     pass
 
 
+def synchronize() -> None:
+    """Wait for the GPU's queued work (--cuda): its calls return before their kernels finish."""
+
+
 def timed(fn, calls: int) -> float:
     """ms per call of fn()."""
+    synchronize()
     start = time.perf_counter()
     for _ in range(calls):
         fn()
+    synchronize()
     return (time.perf_counter() - start) / calls * 1e3
 
 
@@ -175,16 +184,23 @@ COMPUTE_KERNELS = {  # the arithmetic of an update: matmuls, activations and the
 }
 
 
-def arithmetic_floor(update_calls: list, rounds: int = 10) -> float:
+def arithmetic_floor(update_calls: list, rounds: int = 10, cuda: bool = False) -> float:
     """ms per update spent inside compute kernels (self time under torch.profiler) over `rounds` passes of
-    `update_calls` (one pass: the updates of `policy_frequency` consecutive steps)."""
-    from torch.profiler import profile
+    `update_calls` (one pass: the updates of `policy_frequency` consecutive steps). With `cuda`: the time the
+    GPU spends in all of its kernels (a GPU update is bound by launching them, not by this)."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
 
-    with profile() as prof:
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=activities) as prof:
         for _ in range(rounds):
             for call in update_calls:
                 call()
-    kernel_us = sum(e.self_cpu_time_total for e in prof.key_averages() if e.key in COMPUTE_KERNELS)
+        synchronize()
+    if cuda:
+        kernel_us = sum(e.self_device_time_total for e in prof.key_averages() if e.device_type == DeviceType.CUDA)
+    else:
+        kernel_us = sum(e.self_cpu_time_total for e in prof.key_averages() if e.key in COMPUTE_KERNELS)
     return kernel_us / 1e3 / (rounds * len(update_calls))
 
 
@@ -210,6 +226,11 @@ def run_worker(config: str, a: Args) -> dict:
 
     import torch
 
+    if a.cuda:
+        if not torch.cuda.is_available():
+            sys.exit("error: --cuda: torch sees no GPU here")
+        global synchronize
+        synchronize = torch.cuda.synchronize
     script_name, extra = CONFIGS[config]
     script = importlib.import_module(script_name)
     assert os.path.dirname(os.path.abspath(script.__file__)) == os.path.abspath(a.root), script.__file__
@@ -220,7 +241,7 @@ def run_worker(config: str, a: Args) -> dict:
     first_measured = k - a.k  # step in the last iteration: the last --k steps of the run for every configuration
     args = script.Args(env_id=a.env_id, k=k, learning_starts=a.k // 4, keep_buffer=True,
                        restart_on_new_net=False, eval_every=0, eval_members=False, quiet=True,
-                       torch_threads=a.threads, track_dir=tempfile.mkdtemp(prefix="offpolicy_"), **extra)
+                       torch_threads=a.threads, cuda=a.cuda, track_dir=tempfile.mkdtemp(prefix="offpolicy_"), **extra)
     assert a.warmup + a.updates + 1 < a.k, "--k must exceed --warmup + --updates"
     state: dict = {}
     marks: list[float] = []
@@ -232,6 +253,7 @@ def run_worker(config: str, a: Args) -> dict:
         if update_args[3].size < n or update_args[1] < first_measured:  # not yet the run's last --k steps
             return {"alpha": update_args[8]} if script_name == "cascade_sac" else {}
         out = update(*update_args)
+        synchronize()
         marks.append(time.perf_counter())
         if len(marks) == a.warmup + a.updates + 1:
             # the window closes here; the split below calls the script's own update again, not this function
@@ -242,7 +264,7 @@ def run_worker(config: str, a: Args) -> dict:
             args, device = update_args[0], update_args[2][0].device
             state["floor"] = arithmetic_floor([
                 (lambda step=step: update(args, step, state["buffer"].sample(args.batch_size, device), *update_args[3:]))
-                for step in range(args.policy_frequency)])
+                for step in range(args.policy_frequency)], cuda=a.cuda)
             raise Stop
         return out
 
@@ -256,6 +278,7 @@ def run_worker(config: str, a: Args) -> dict:
     total = sum(v for k, v in parts.items() if k != "alpha")
     return {"config": config, "sps": sps, "parts_ms": parts, "update_ms": total, "floor_ms": state["floor"],
             "env_sps": env_limit(a.env_id, args.obs_reward_clip), "torch": torch.__version__,
+            "device": torch.cuda.get_device_name() if a.cuda else "cpu",
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
@@ -325,6 +348,7 @@ def main() -> None:
             cmd = [sys.executable, os.path.abspath(__file__), "--worker", config, "--root", root]
             for name in ("env_id", "k", "warmup", "updates", "calls", "rounds", "threads"):
                 cmd += [f"--{name.replace('_', '-')}", str(getattr(a, name))]
+            cmd += ["--cuda"] if a.cuda else []
             # the scripts from `root`, the package too (PYTHONPATH precedes the editable install)
             env = {**os.environ, "PYTHONPATH": root}
             out = subprocess.run(cmd, capture_output=True, text=True, cwd=root, env=env)
@@ -361,6 +385,7 @@ def main() -> None:
         return
     print(f"\n{a.env_id}: median of {a.repeats} runs; {a.updates} training steps with updates after {a.warmup} "
           f"warm-up updates; split from {a.rounds} x {a.calls} calls per part; {a.threads} torch thread(s); "
+          f"{'nets on the GPU (' + results[runs[0][:2]][0]['device'] + '), floor = GPU kernel time; ' if a.cuda else ''}"
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
     print("| configuration | tree | steps/s | env alone, steps/s | ms/update | arithmetic floor | sampling | critic | "
           "actor | targets | (alpha) | peak RSS MB |")

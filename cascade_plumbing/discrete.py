@@ -195,8 +195,8 @@ class EvaluationEpisodes(EvaluationEnvs):
     def run(self, policy: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]],
             stats: tuple[np.ndarray, np.ndarray] | None, call: int, deterministic: bool
             ) -> tuple[np.ndarray, list[list[np.ndarray]]]:
-        """One episode per env: `policy(x)` gives the logits of the observations x of the episodes still running
-        and, per row, what to keep of that step (or None); the action is sampled from Categorical(logits) (the
+        """One episode per env: `policy(x)` gives the logits of the observations x (a CPU tensor) of the episodes
+        still running and, per row, what to keep of that step (or None); the action is sampled from Categorical(logits) (the
         argmax with `deterministic`). Returns each episode's return and its steps' kept rows. The episodes' seeds
         and the sampled actions depend only on (seed, call): evaluation never touches training's RNG, and a
         resumed run evaluates exactly as the uninterrupted one."""
@@ -206,9 +206,10 @@ class EvaluationEpisodes(EvaluationEnvs):
 
         def act(raw_obs: np.ndarray, running: list[int]) -> list[int]:
             logits, rows = policy(torch.as_tensor(normalize_obs(raw_obs, stats, self.discretize)))
+            logits = logits.cpu()  # a --cuda actor's: sampled here, by this evaluation's own CPU generator
             if rows is not None:
                 for row, i in enumerate(running):
-                    kept[i].append(rows[row].numpy())
+                    kept[i].append(rows[row].cpu().numpy())
             if deterministic:
                 return logits.argmax(-1).tolist()
             return torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1).tolist()

@@ -48,13 +48,18 @@ def seed_everything(seed: int, torch_deterministic: bool) -> None:
 
 
 def rng_states() -> dict:
-    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    states = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    if torch.cuda.is_initialized():  # a --cuda run samples its actions (and PPO its minibatches) on the GPU
+        states["torch_cuda"] = torch.cuda.get_rng_state()
+    return states
 
 
 def set_rng_states(states: dict) -> None:
     torch.set_rng_state(states["torch"])
     np.random.set_state(states["numpy"])
     random.setstate(states["python"])
+    if "torch_cuda" in states and torch.cuda.is_available():  # resumed on a CPU: that stream is not used
+        torch.cuda.set_rng_state(states["torch_cuda"])
 
 
 # Settings a resumed run may change; every other flag must match the checkpoint.
