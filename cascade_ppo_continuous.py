@@ -473,7 +473,7 @@ def train(args: Args, checkpoint: dict | None = None,
     updates_per_iteration = args.k // batch_size
     total_updates = args.n * updates_per_iteration
     run = RunLog(args, checkpoint, obs_dim, act_dim, envs, total_updates * batch_size)
-    fast = make_fast_paths(args, run)  # section 2, checked against this section while the run trains
+    fast = make_fast_paths(args, device, run)  # section 2, checked against this section while the run trains
 
     actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init).to(device)
     if args.start_full:
@@ -659,9 +659,8 @@ def policy_of(actor: CascadeActor, kind: int) -> Callable:
 # and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
 # fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
 # continues exactly as --autograd runs it. On the CPU only: on a GPU, act() draws from the CUDA generator.
-def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    on_gpu = args.cuda and torch.cuda.is_available()  # as train() chooses the device
-    return FastPaths(not (args.autograd or on_gpu), numpy_cascade_policy, cascade_ppo_gradients,
+def make_fast_paths(args: Args, device: torch.device, run: RunLog | None = None) -> FastPaths:
+    return FastPaths(not args.autograd and device.type == "cpu", numpy_cascade_policy, cascade_ppo_gradients,
                      None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
 
 

@@ -310,7 +310,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
     total_updates = args.total_timesteps // batch_size
     updates_per_cycle = max(args.cycle_steps // batch_size, 1)
     run = RunLog(args, checkpoint, obs_dim, act_dim, envs, total_updates * batch_size)
-    fast = make_fast_paths(args, run)  # section 2, checked against this section while the run trains
+    fast = make_fast_paths(args, device, run)  # section 2, checked against this section while the run trains
 
     actor = Actor(obs_dim, act_dim, args.hidden_size).to(device)
     critic = make_critic(obs_dim).to(device)
@@ -445,9 +445,8 @@ class Evaluator(EvaluationEnvs):
 # and `optimizer_step` are compared with the hand-written update, in float64. An edit of section 1 that the
 # fast paths do not reproduce, or that makes them raise, switches them off with one warning line, and the run
 # continues exactly as --autograd runs it. On the CPU only: on a GPU, act() draws from the CUDA generator.
-def make_fast_paths(args: Args, run: RunLog | None = None) -> FastPaths:
-    on_gpu = args.cuda and torch.cuda.is_available()  # as train() chooses the device
-    return FastPaths(not (args.autograd or on_gpu), numpy_mlp_policy, mlp_ppo_gradients,
+def make_fast_paths(args: Args, device: torch.device, run: RunLog | None = None) -> FastPaths:
+    return FastPaths(not args.autograd and device.type == "cpu", numpy_mlp_policy, mlp_ppo_gradients,
                      None if run is None else run.fast_path_off, definition=(autograd_gradients, optimizer_step))
 
 

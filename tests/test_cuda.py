@@ -98,10 +98,13 @@ def test_gpu_and_cpu_compute_the_same_ppo_gradient():
         torch.testing.assert_close(g_gpu, g_cpu, rtol=1e-3, atol=1e-5)
 
 
-def test_fast_paths_are_off_on_the_gpu():
-    import cascade_ppo_continuous as cpc
-    import ppo_baseline as pb
-
-    for module in (cpc, pb):
-        fast = module.make_fast_paths(module.Args(cuda=True))
-        assert not fast.gradients and not fast.acting
+@pytest.mark.parametrize("name", ["cascade_ppo_continuous", "ppo_baseline"])
+def test_a_gpu_run_trains_without_the_fast_paths(name, tmp_path, monkeypatch):
+    """The fast paths are CPU-only: train() hands make_fast_paths the GPU it chose, and they stay off."""
+    module = importlib.import_module(name)
+    made = []
+    monkeypatch.setattr(module, "make_fast_paths",
+                        lambda *a, make=module.make_fast_paths: made.append(make(*a)) or made[-1])
+    settings, _ = RUNS[name]
+    module.train(module.Args(cuda=True, quiet=True, track_dir=str(tmp_path), **{**settings, "eval_every": 0}))
+    assert len(made) == 1 and not made[0].gradients and not made[0].acting

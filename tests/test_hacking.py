@@ -439,14 +439,16 @@ def test_a_resumed_actor_keeps_its_saved_frozen_count_through_an_edited_freeze_b
 
 
 @pytest.mark.parametrize("module", [cpc, pb], ids=["cascade_ppo_continuous", "ppo_baseline"])
-def test_the_fast_paths_stay_off_on_a_gpu(module, monkeypatch):
+def test_the_fast_paths_stay_off_on_a_gpu(module):
     """On a GPU, act() samples from the CUDA generator, which the numpy acting path (torch's CPU generator) cannot
-    reproduce: --cuda runs section 1 only. On the CPU the fast paths are on unless --autograd."""
-    assert module.make_fast_paths(module.Args()).acting and not module.make_fast_paths(module.Args(autograd=True)).acting
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    fast = module.make_fast_paths(module.Args(cuda=True))
+    reproduce: --cuda runs section 1 only (tests/test_cuda.py checks a real --cuda run). On the CPU the fast paths
+    are on unless --autograd."""
+    cpu = torch.device("cpu")
+    assert module.make_fast_paths(module.Args(), cpu).acting
+    assert not module.make_fast_paths(module.Args(autograd=True), cpu).acting
+    fast = module.make_fast_paths(module.Args(cuda=True), torch.device("cuda"))
     assert not fast.acting and not fast.gradients
-    assert module.make_fast_paths(module.Args()).gradients  # --cuda not asked for: the CPU run keeps them
+    assert module.make_fast_paths(module.Args(), cpu).gradients
 
 
 def test_an_act_drawing_one_numpy_number_mid_stream_switches_acting_off():
@@ -461,6 +463,6 @@ def test_an_act_drawing_one_numpy_number_mid_stream_switches_acting_off():
 
     np.random.seed(0)
     np.random.rand()  # the stream stands mid-block: the next draw moves only numpy's position
-    fast = cpc.make_fast_paths(cpc.Args())
+    fast = cpc.make_fast_paths(cpc.Args(), torch.device("cpu"))
     fast.acting_function(act, actor, np.zeros((2, 3), np.float32), 0, 4)
     assert not fast.acting and "act() draws from numpy's or Python's global random numbers" in fast.messages[0]
