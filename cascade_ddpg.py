@@ -46,7 +46,7 @@ from cascade_plumbing.envs import make_env, make_vector_env
 from cascade_plumbing.errors import fail
 from cascade_plumbing.offpolicy import OffPolicyRun, Policy, check_replay_settings, evaluate_saved_policy, minimize
 from cascade_plumbing.replay import ReplayBuffer, buffer_capacity
-from cascade_plumbing.runs import check_common_settings, run_main, script_name, seed_everything
+from cascade_plumbing.runs import check_common_settings, run_device, run_main, script_name, seed_everything
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -380,7 +380,7 @@ def train(args: Args, checkpoint: dict | None = None,
     validate(args)
     torch.set_num_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    device = run_device(args.cuda)
     # CleanRL's DDPG env (raw episode statistics, no normalization; `add_noise` clips the actions to the bounds),
     # plus the paper's code's clipping of raw observations and rewards to +-obs_reward_clip (0: none)
     envs = make_vector_env([make_env(args.env_id, video=args.capture_video, clip=args.obs_reward_clip)])

@@ -52,7 +52,7 @@ from cascade_plumbing.discrete import (  # noqa: F401 (MAX_DISCRETIZED_DIMS, Dis
 from cascade_plumbing.envs import find_wrapper, obs_statistics  # noqa: F401 (find_wrapper: for the tests)
 from cascade_plumbing.errors import fail
 from cascade_plumbing.ppo import check_ppo_settings
-from cascade_plumbing.runs import check_common_settings, run_main, seed_everything
+from cascade_plumbing.runs import check_common_settings, run_device, run_main, seed_everything
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -401,7 +401,7 @@ def train(args: Args, checkpoint: dict | None = None,
     say = (lambda *_: None) if args.quiet else print
     torch.set_num_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    device = run_device(args.cuda)
 
     envs = make_vector_env(args, discretize, normalize)  # their normalization statistics live through all iterations
     obs_dim = int(np.prod(envs.single_observation_space.shape))

@@ -50,7 +50,7 @@ from cascade_plumbing.ppo import (
     make_vector_env,
 )
 from cascade_plumbing.record import RunRecord
-from cascade_plumbing.runs import check_common_settings, run_main, script_name, seed_everything
+from cascade_plumbing.runs import check_common_settings, run_device, run_main, script_name, seed_everything
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -301,7 +301,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
     validate(args)
     torch.set_num_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    device = run_device(args.cuda)
     envs = make_vector_env(args)
     obs_dim = int(np.prod(envs.single_observation_space.shape))
     act_dim = int(np.prod(envs.single_action_space.shape))

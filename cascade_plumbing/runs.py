@@ -47,6 +47,14 @@ def seed_everything(seed: int, torch_deterministic: bool) -> None:
     torch.backends.cudnn.deterministic = torch_deterministic
 
 
+def run_device(cuda: bool) -> torch.device:
+    """The GPU for --cuda where torch sees one, else the CPU; --cuda without a GPU says so in one line."""
+    if cuda and not torch.cuda.is_available():
+        print("warning: --cuda: torch sees no GPU here (a CPU-only torch build, or no driver); running on the CPU",
+              file=sys.stderr, flush=True)
+    return torch.device("cuda" if cuda and torch.cuda.is_available() else "cpu")
+
+
 def rng_states() -> dict:
     states = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
     if torch.cuda.is_initialized():  # a --cuda run samples its actions (and PPO its minibatches) on the GPU

@@ -1,7 +1,8 @@
 """`--cuda` on a real GPU: every script trains with its nets on the GPU, a GPU run resumes exactly on the GPU, its
 checkpoints evaluate on the CPU, and the GPU computes the same policy (and PPO gradient) as the CPU.
 
-Skipped where torch sees no GPU (CI has none): run `pytest tests/test_cuda.py` on a GPU machine.
+Skipped where torch sees no GPU (CI has none): run `pytest tests/test_cuda.py` on a GPU machine. There, the last
+test (`--cuda` without a GPU says so) is the one skipped.
 """
 
 import copy
@@ -13,7 +14,7 @@ import torch
 
 from helpers import cli_in_process, copy_checkpoint_when, resume_from
 
-pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (torch sees none)")
+needs_gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (torch sees none)")
 
 PPO = dict(num_steps=256, num_minibatches=4, update_epochs=2, eval_every=512, eval_episodes=2, checkpoint_every=512)
 OFF_POLICY = dict(env_id="Hopper-v4", n=2, k=400, learning_starts=100, batch_size=32, eval_every=200,
@@ -36,6 +37,7 @@ def assert_same_parameters(a: torch.nn.Module, b: torch.nn.Module) -> None:
         torch.testing.assert_close(x, y, rtol=0, atol=0, msg=name)
 
 
+@needs_gpu
 @pytest.mark.parametrize("name", list(RUNS))
 def test_gpu_run_resumes_exactly_and_evaluates_on_the_cpu(name, tmp_path, capsys):
     module = importlib.import_module(name)
@@ -54,6 +56,7 @@ def test_gpu_run_resumes_exactly_and_evaluates_on_the_cpu(name, tmp_path, capsys
         assert code == 0 and " over 2 " in out, (out, error)
 
 
+@needs_gpu
 @pytest.mark.parametrize("name", ["cascade_ppo_continuous", "cascade_ppo_discrete", "cascade_sac", "cascade_ddpg"])
 def test_gpu_and_cpu_compute_the_same_policy(name, tmp_path):
     """The final nets of a short GPU run, rebuilt from its checkpoint on each device: same forward outputs."""
@@ -69,6 +72,7 @@ def test_gpu_and_cpu_compute_the_same_policy(name, tmp_path):
             torch.testing.assert_close(b.cpu(), a, rtol=1e-4, atol=1e-5)
 
 
+@needs_gpu
 def test_gpu_and_cpu_compute_the_same_ppo_gradient():
     """Section 1's loss and autograd gradient of the flagship on one minibatch, on each device."""
     import cascade_ppo_continuous as cpc
@@ -98,6 +102,7 @@ def test_gpu_and_cpu_compute_the_same_ppo_gradient():
         torch.testing.assert_close(g_gpu, g_cpu, rtol=1e-3, atol=1e-5)
 
 
+@needs_gpu
 @pytest.mark.parametrize("name", ["cascade_ppo_continuous", "ppo_baseline"])
 def test_a_gpu_run_trains_without_the_fast_paths(name, tmp_path, monkeypatch):
     """The fast paths are CPU-only: train() hands make_fast_paths the GPU it chose, and they stay off."""
@@ -108,3 +113,23 @@ def test_a_gpu_run_trains_without_the_fast_paths(name, tmp_path, monkeypatch):
     settings, _ = RUNS[name]
     module.train(module.Args(cuda=True, quiet=True, track_dir=str(tmp_path), **{**settings, "eval_every": 0}))
     assert len(made) == 1 and not made[0].gradients and not made[0].acting
+
+
+TINY = {  # one update each
+    "cascade_ppo_continuous": dict(env_id="Hopper-v4", n=1, k=256, num_steps=256, num_minibatches=4),
+    "ppo_baseline": dict(env_id="Hopper-v4", total_timesteps=256, num_steps=256, num_minibatches=4),
+    "cascade_ppo_discrete": dict(env_id="CartPole-v1", n=1, k=256, num_steps=64, num_minibatches=4),
+    "ppo_baseline_discrete": dict(env_id="CartPole-v1", total_timesteps=256, num_steps=64, num_minibatches=4),
+    "cascade_sac": dict(env_id="Hopper-v4", n=1, k=150, learning_starts=100, batch_size=32),
+    "cascade_ddpg": dict(env_id="Hopper-v4", n=1, k=150, learning_starts=100, batch_size=32),
+}
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine where torch sees no GPU")
+@pytest.mark.parametrize("name", list(TINY))
+def test_cuda_without_a_gpu_says_so_and_runs_on_the_cpu(name, tmp_path, capsys):
+    module = importlib.import_module(name)
+    result = module.train(module.Args(cuda=True, quiet=True, eval_every=0, track_dir=str(tmp_path), **TINY[name]))
+    assert {p.device.type for p in result["actor"].parameters()} == {"cpu"}
+    warning = "warning: --cuda: torch sees no GPU here"
+    assert capsys.readouterr().err.count(warning) == 1
