@@ -63,7 +63,7 @@ class Args:
     torch_threads: int = 1
     """torch CPU threads; 1: these nets are too small for a second thread to pay (README, speed of SAC and DDPG)"""
     cuda: bool = False
-    """run the nets on the GPU if torch sees one (slower for these small nets: ~0.5x one CPU core, README "SAC and DDPG")"""
+    """train on the GPU if torch sees one (slower for these small nets: ~0.5x one CPU core, README "SAC and DDPG"); --evaluate runs on the CPU"""
     track_dir: str = "runs"
     """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
     track: bool = False

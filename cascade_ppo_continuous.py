@@ -73,7 +73,7 @@ class Args:
     torch_threads: int = 1
     """torch CPU threads; 1 is fastest for these small nets"""
     cuda: bool = False
-    """run the nets on the GPU if torch sees one: slower for these small nets (~0.26x the steps/s of one CPU core, README "Performance")"""
+    """train on the GPU if torch sees one: slower for these small nets (~0.26x the steps/s of one CPU core, README "Performance"); --evaluate runs on the CPU"""
     track_dir: str = "runs"
     """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
     track: bool = False

@@ -59,7 +59,7 @@ class Args:
     torch_threads: int = 1
     """torch CPU threads; 1: a second one sped the 256-wide SAC baseline up by only ~1.15x in wall-clock for ~1.5x the CPU time (README, speed of SAC and DDPG), so two runs side by side finish sooner than one run on two threads"""
     cuda: bool = False
-    """run the nets on the GPU if torch sees one (~1.4x the steps/s of one CPU core on an H200 machine, README "SAC and DDPG")"""
+    """train on the GPU if torch sees one (~1.4x the steps/s of one CPU core on an H200 machine, README "SAC and DDPG"); --evaluate runs on the CPU"""
     track_dir: str = "runs"
     """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
     track: bool = False

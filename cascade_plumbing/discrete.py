@@ -208,8 +208,9 @@ class EvaluationEpisodes(EvaluationEnvs):
             logits, rows = policy(torch.as_tensor(normalize_obs(raw_obs, stats, self.discretize)))
             logits = logits.cpu()  # a --cuda actor's: sampled here, by this evaluation's own CPU generator
             if rows is not None:
+                rows = rows.cpu().numpy()
                 for row, i in enumerate(running):
-                    kept[i].append(rows[row].cpu().numpy())
+                    kept[i].append(rows[row])
             if deterministic:
                 return logits.argmax(-1).tolist()
             return torch.multinomial(logits.softmax(-1), 1, generator=generator).squeeze(-1).tolist()

@@ -67,6 +67,9 @@ def set_rng_states(states: dict) -> None:
     np.random.set_state(states["numpy"])
     random.setstate(states["python"])
     if "torch_cuda" in states and torch.cuda.is_available():  # resumed on a CPU: that stream is not used
+        # Start CUDA now: before start-up, set_rng_state is only queued, and start-up runs the queued seeding
+        # (seed_everything's manual_seed) after it, which would overwrite the restored stream.
+        torch.cuda.init()
         torch.cuda.set_rng_state(states["torch_cuda"])
 
 
