@@ -49,10 +49,11 @@ def seed_everything(seed: int, torch_deterministic: bool) -> None:
 
 def run_device(cuda: bool) -> torch.device:
     """The GPU for --cuda where torch sees one, else the CPU; --cuda without a GPU says so in one line."""
-    if cuda and not torch.cuda.is_available():
+    on_gpu = cuda and torch.cuda.is_available()
+    if cuda and not on_gpu:
         print("warning: --cuda: torch sees no GPU here (a CPU-only torch build, or no driver); running on the CPU",
               file=sys.stderr, flush=True)
-    return torch.device("cuda" if cuda and torch.cuda.is_available() else "cpu")
+    return torch.device("cuda" if on_gpu else "cpu")
 
 
 def rng_states() -> dict:
