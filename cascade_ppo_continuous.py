@@ -54,7 +54,7 @@ from cascade_plumbing.ppo import (
     make_vector_env,
 )
 from cascade_plumbing.record import RunRecord
-from cascade_plumbing.runs import check_common_settings, run_device, run_main, script_name, seed_everything
+from cascade_plumbing.runs import check_common_settings, run_device, run_main, script_name, seed_everything, set_threads
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -462,7 +462,7 @@ def train(args: Args, checkpoint: dict | None = None,
     """Runs Cascade (from scratch, or continuing `checkpoint`); returns the final actor, critic, run folder.
     `on_iteration_start` sees the fresh state of each iteration (used by the tests)."""
     validate(args)
-    torch.set_num_threads(args.torch_threads)
+    set_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
     device = run_device(args.cuda)
     envs = make_vector_env(args)

@@ -52,7 +52,7 @@ from cascade_plumbing.discrete import (  # noqa: F401 (MAX_DISCRETIZED_DIMS, Dis
 from cascade_plumbing.envs import find_wrapper, obs_statistics  # noqa: F401 (find_wrapper: for the tests)
 from cascade_plumbing.errors import fail
 from cascade_plumbing.ppo import check_ppo_settings
-from cascade_plumbing.runs import check_common_settings, run_device, run_main, seed_everything
+from cascade_plumbing.runs import check_common_settings, run_device, run_main, seed_everything, set_threads
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -399,7 +399,7 @@ def train(args: Args, checkpoint: dict | None = None,
     `on_iteration_start` sees the fresh state of each iteration (used by the tests)."""
     discretize, normalize = resolve(args)
     say = (lambda *_: None) if args.quiet else print
-    torch.set_num_threads(args.torch_threads)
+    set_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
     device = run_device(args.cuda)
 

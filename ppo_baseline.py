@@ -50,7 +50,7 @@ from cascade_plumbing.ppo import (
     make_vector_env,
 )
 from cascade_plumbing.record import RunRecord
-from cascade_plumbing.runs import check_common_settings, run_device, run_main, script_name, seed_everything
+from cascade_plumbing.runs import check_common_settings, run_device, run_main, script_name, seed_everything, set_threads
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -299,7 +299,7 @@ def compute_gae(rewards: np.ndarray, dones: np.ndarray, values: np.ndarray, next
 def train(args: Args, checkpoint: dict | None = None) -> dict:
     """Runs PPO (from scratch, or continuing `checkpoint`); returns the final actor, critic and run folder."""
     validate(args)
-    torch.set_num_threads(args.torch_threads)
+    set_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
     device = run_device(args.cuda)
     envs = make_vector_env(args)

@@ -21,6 +21,7 @@ from .envs import OBS_CLIP, check_env_id, obs_statistics
 from .errors import fail
 from .evaluation import EvaluationEnvs
 from .record import RunRecord
+from .runs import set_threads
 
 MAX_DISCRETIZED_DIMS = 10  # 2^10 = 1024 actions; Humanoid's 17 dims (131072 actions) are out of scope
 
@@ -225,7 +226,7 @@ def evaluate_saved_model(args: Any, load_checkpoint: Callable[[str], dict],
     if args.eval_episodes < 1:
         fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
     checkpoint = load_checkpoint(args.evaluate)
-    torch.set_num_threads(args.torch_threads)
+    set_threads(args.torch_threads)
     env_id = checkpoint["args"]["env_id"]
     episodes = EvaluationEpisodes(env_id, args.eval_episodes, args.seed, checkpoint["discretize"])
     returns, what = evaluate(checkpoint, episodes)

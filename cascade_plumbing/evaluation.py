@@ -15,6 +15,7 @@ import torch
 
 from .envs import make_render_env, write_video
 from .errors import fail
+from .runs import set_threads
 
 
 def evaluation_worker(conn, make_context: Callable[[], Any], work: Callable[[Any, int, Any], Any]) -> None:
@@ -142,5 +143,5 @@ def open_saved_model(args: Any, load_checkpoint: Callable[[str], dict]) -> dict:
     checkpoint = load_checkpoint(args.evaluate)
     if args.capture_video:
         make_render_env(checkpoint["args"]["env_id"]).close()
-    torch.set_num_threads(args.torch_threads)
+    set_threads(args.torch_threads)
     return checkpoint

@@ -27,20 +27,26 @@ from .evaluation import EvaluationEnvs
 from .fast import plain_fused_adam
 from .record import RunRecord
 from .replay import ReplayBuffer, available_memory, buffer_capacity, store_transition
+from .runs import set_threads
 from .tracking import log_new_videos
 
 
 def minimize(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
     """`optimizer.zero_grad(); loss.backward(); optimizer.step()`, with less overhead, still plain autograd:
     torch.autograd.grad computes the gradients of exactly the optimizer's parameters (no other weight gradient,
-    e.g. none of the critics' in the actor loss), and they go straight into the fused Adam kernel that step() ends
-    in (step() spends longer grouping and checking than the kernel takes). Any other optimizer (AdamW, amsgrad,
-    several parameter groups...), and Adam's first step (it creates the state), take the plain path; the
-    optimizer's state, and so the checkpoints, are as step() leaves them (tests/test_sac_ddpg_updates.py checks
-    it bit for bit)."""
-    group = optimizer.param_groups[0]
+    e.g. none of the critics' in the actor loss), and `step_with_gradients` applies them."""
     params = [param for each in optimizer.param_groups for param in each["params"]]  # every group's (a hacker's)
-    grads = list(torch.autograd.grad(loss, params, materialize_grads=True))
+    step_with_gradients(optimizer, params, list(torch.autograd.grad(loss, params, materialize_grads=True)))
+
+
+def step_with_gradients(optimizer: torch.optim.Optimizer, params: list[torch.Tensor],
+                        grads: list[torch.Tensor]) -> None:
+    """`optimizer.step()` with `grads` as the gradients of `params` (all of the optimizer's, in its order): for
+    torch's fused Adam, a direct call of the kernel that step() ends in (step() spends longer grouping and checking
+    than the kernel takes). Any other optimizer (AdamW, amsgrad, several parameter groups...), and Adam's first
+    step (it creates the state), take the plain path; the optimizer's state, and so the checkpoints, are as step()
+    leaves them (tests/test_sac_ddpg_updates.py checks it bit for bit)."""
+    group = optimizer.param_groups[0]
     states = [optimizer.state.get(p) for p in params]
     if all(states) and plain_fused_adam(optimizer):  # not AdamW, amsgrad, a subclass of Adam...: their step()
         steps = [state["step"] for state in states]
@@ -137,7 +143,7 @@ def evaluate_saved_policy(args: Any, load_checkpoint: Callable[[str], dict],
         fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
     checkpoint = load_checkpoint(args.evaluate)
     saved = checkpoint["args"]
-    torch.set_num_threads(args.torch_threads)
+    set_threads(args.torch_threads)
     full, members = policies(checkpoint)
     evaluator = Evaluator(saved["env_id"], args.eval_episodes, args.seed, saved["obs_reward_clip"])
     returns, _ = evaluator(full)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 import tyro
+from threadpoolctl import threadpool_limits
 
 from .checkpoints import CHECKPOINT_NAME, repair_iteration_files
 from .envs import end_env_workers
@@ -38,6 +39,13 @@ def check_track_dir(track_dir: str) -> None:
     except OSError as exc:
         fail(f"cannot create run folders under --track-dir {track_dir} ({exc.strerror or exc} in {ancestor}); "
              "pass a writable folder")
+
+
+def set_threads(threads: int) -> None:
+    """`threads` CPU threads for torch and for numpy's BLAS alike: numpy's OpenBLAS otherwise takes every core
+    for a 256-wide product (the SAC fast path's, the numpy acting paths'), so one run would use two cores."""
+    torch.set_num_threads(threads)
+    threadpool_limits(limits=threads, user_api="blas")
 
 
 def seed_everything(seed: int, torch_deterministic: bool) -> None:

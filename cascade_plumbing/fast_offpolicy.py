@@ -1,0 +1,525 @@
+"""Fast paths of the off-policy scripts: the same SAC and DDPG updates as the scripts' `sac_update` and
+`ddpg_update`, with the gradients written out by hand and the matrix products done by numpy's BLAS.
+
+Why: on the AMD EPYC CPUs we run on, torch's CPU build multiplies through Intel's MKL, which takes that CPU's slow
+code path (README, "SAC and DDPG"): a 256x256 by 256x256 product ran 1.7x slower than numpy's OpenBLAS, a
+256-wide layer's one- or six-column head 8-10x slower, and torch's tanh 7x slower than numpy's. Elementwise work
+stays in torch, which is the faster of the two there. The fast update is the script's update, step for step: the
+critics' regression to the same targets, the same actor loss, the same temperature update, the same Adam
+(`apply_gradients`, the fused kernel that `minimize` also calls) and the same soft target updates, drawing the
+same random numbers from the same torch generator in the same order, so a run follows the same trajectory up to
+float rounding.
+
+Nothing here is a definition. `OffPolicyFastPath.update(definition, *arguments)` runs the script's own update
+(`definition`) and this one on float64 copies of everything it touches (nets, targets, optimizers and their state,
+the temperature), from the same random state, on the first updates with each new actor optimizer (each Cascade
+iteration's first, a resumed run's first) and then every CHECK_EVERY updates, and compares what they leave: every
+parameter's change, every optimizer state, the values the script logs. A disagreement, or an exception, switches
+the fast path off for the rest of the run with one warning line, and the run continues with `definition`, as
+`--autograd` runs it. A script's edit of its nets, losses or update therefore either changes both paths alike or
+shows at the next check, which comes before the new iteration's second update.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from .fast import describe
+from .offpolicy import step_with_gradients
+
+# A check covers the first CHECK_SPAN updates (the actor's, the temperature's and the targets' come every 2nd
+# update by default) of each new actor optimizer, then CHECK_SPAN updates every CHECK_EVERY: a check costs about
+# six float64 updates, ~1% of the updates' time at this spacing.
+CHECK_EVERY = 1000
+# Relative differences above which the two updates disagree. The gradients (in Adam's moments), the losses and
+# values agree to ~1e-11 in float64: more than 1e-16, as log(1 - y^2) and tanh's 1 - y^2 near |y| = 1 amplify the
+# last bit of a sum. A parameter's change is Adam's normalized step g / (|g| + eps), which amplifies the relative
+# rounding of a gradient element near eps up to ~1e-6 (tests/test_fast_offpolicy.py measures both); an edit of the
+# method changes some number by far more (a loss term, a bound, a target step: 1e-3 and up).
+TOLERANCE = 1e-8
+STEP_TOLERANCE = 1e-4
+# a change, state or value is compared relative to at least this fraction of the largest of its kind: a parameter
+# whose gradient cancels to ~0 (a bias summed over the batch) has only rounding to compare
+FLOOR = 1e-3
+
+
+# ----------------------------------------------------------------------------------------------
+# Kernels: products through numpy's BLAS, tanh through numpy; elementwise work in torch
+# ----------------------------------------------------------------------------------------------
+def matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a @ b (batched, broadcast), computed by numpy's BLAS on views of the same memory."""
+    return torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
+
+
+def tanh_(x: torch.Tensor) -> torch.Tensor:
+    """x <- tanh(x), in place, by numpy's vectorized tanh."""
+    array = x.numpy()
+    np.tanh(array, out=array)
+    return x
+
+
+def activation_name(module: nn.Module) -> str:
+    """'tanh' or 'relu': the hidden activation a script's net applies (SAC's nets have no attribute: ReLU)."""
+    activation = getattr(module, "activation", torch.relu)
+    if activation is torch.tanh:
+        return "tanh"
+    if activation is torch.relu:
+        return "relu"
+    raise ValueError(f"no hand-written gradient for the activation {activation}")
+
+
+def activate_(z: torch.Tensor, activation: str) -> torch.Tensor:
+    return tanh_(z) if activation == "tanh" else torch.relu_(z)
+
+
+def activation_backward(grad: torch.Tensor, out: torch.Tensor, activation: str) -> torch.Tensor:
+    """grad * f'(z), written with the activation's output: 1 - tanh^2, or the ReLU's mask."""
+    if activation == "tanh":
+        return torch.ops.aten.tanh_backward(grad, out)
+    return torch.ops.aten.threshold_backward(grad, out, 0)  # relu's own backward kernel: out > 0 iff its input is
+
+
+# ----------------------------------------------------------------------------------------------
+# A stack of m MLPs with weights [m, in, out] (the critics; the actors' hidden layers)
+# ----------------------------------------------------------------------------------------------
+def stacked_forward(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor, activation: str,
+                    activate_last: bool) -> list[torch.Tensor]:
+    """Each layer's output (after its activation), for input x [B, in] read by every member, or [m, B, in]."""
+    outs = []
+    for i, (weight, bias) in enumerate(layers):
+        z = matmul(x if i == 0 else outs[-1], weight).add_(bias)
+        outs.append(activate_(z, activation) if activate_last or i < len(layers) - 1 else z)
+    return outs
+
+
+def stacked_backward(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor, outs: list[torch.Tensor],
+                     grad: torch.Tensor, activation: str, activate_last: bool, weights: bool = True,
+                     input_grad: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+    """Back through `stacked_forward` from the gradient of its last output: the gradients [weight, bias, ...] of
+    every layer (with `weights`) and of the input x (with `input_grad`; summed over members for a shared x)."""
+    grads: list[torch.Tensor] = []
+    for i in reversed(range(len(layers))):
+        if activate_last or i < len(layers) - 1:
+            grad = activation_backward(grad, outs[i], activation)
+        if weights:
+            below = x if i == 0 else outs[i - 1]
+            grads[:0] = [matmul(below.transpose(-1, -2), grad), grad.sum(-2, keepdim=True)]
+        if i > 0 or input_grad:
+            grad = matmul(grad, layers[i][0].transpose(-1, -2))
+    if not input_grad:
+        return grads, None
+    return grads, grad.sum(0) if x.dim() == 2 else grad
+
+
+def weight_grads_by_parameter(weights: list[nn.Parameter], biases: list[nn.Parameter], grads: list[torch.Tensor],
+                              into: dict[nn.Parameter, torch.Tensor]) -> None:
+    for weight, bias, grad_weight, grad_bias in zip(weights, biases, grads[0::2], grads[1::2]):
+        into[weight], into[bias] = grad_weight, grad_bias
+
+
+# ----------------------------------------------------------------------------------------------
+# The Cascade combination C_n = sum_i w_i b_i and its gradient
+# ----------------------------------------------------------------------------------------------
+def cascade_contributions(fallback: torch.Tensor) -> torch.Tensor:
+    """w_i = (1 - l_i) prod_{j>i} l_j (l_1 := 0) of fallbacks [n-1, B, 1]: [n, B, 1]."""
+    ones = fallback.new_ones((1, *fallback.shape[1:]))
+    later = torch.cat([fallback, ones]).flip(0).cumprod(0).flip(0)
+    return torch.cat([ones, 1 - fallback]) * later
+
+
+def cascade_backward(fallback: torch.Tensor, weighted: torch.Tensor, contribution: torch.Tensor,
+                     grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gradients of C = sum_i weighted_i (weighted_i = w_i b_i) with respect to each net's output b_i, [n, B, D],
+    and each fallback logit, [n-1, B, 1]. Without a division: for C_i = l_i C_{i-1} + (1 - l_i) b_i,
+    dC/dlogit_i = l_i (1 - l_i) prod_{j>i} l_j (C_{i-1} - b_i) = (1 - l_i) S_{i-1} - l_i w_i b_i, where
+    S_{i-1} = sum_{j<i} w_j b_j (the products prod_{j>i} l_j cancel against the partial ensemble's weights)."""
+    partial = weighted[:-1].cumsum(0)  # S_1 .. S_{n-1}
+    below = (partial * grad).sum(-1, keepdim=True)
+    own = (weighted[1:] * grad).sum(-1, keepdim=True)
+    grad_logit = (1 - fallback) * below - fallback * own
+    return contribution * grad, grad_logit
+
+
+class CascadePass:
+    """One forward pass of a script's CascadeActor (all nets at once), kept for its backward pass. The actor's
+    outputs of every net (`head`: SAC's [mean | raw log-std], DDPG's mu) are combined by the fallbacks."""
+
+    def __init__(self, actor: nn.Module, obs: torch.Tensor, head: tuple[nn.Parameter, nn.Parameter]):
+        self.actor, self.obs = actor, obs
+        self.activation = activation_name(actor)
+        self.hidden = [(w.detach(), b.detach()) for w, b in zip(actor.hidden_weights, actor.hidden_biases)]
+        self.head_params = head
+        self.head = (head[0].detach(), head[1].detach())
+        self.fallback_head = (actor.fallback_weight.detach(), actor.fallback_bias.detach())
+        self.trunk = stacked_forward(self.hidden, obs, self.activation, activate_last=True)
+        top = self.trunk[-1]  # [n, B, H]
+        self.out = matmul(top, self.head[0]).add_(self.head[1])  # [n, B, D]: each net's output
+        self.fallback = torch.sigmoid_(matmul(top[1:], self.fallback_head[0]).add_(self.fallback_head[1]))
+        self.contribution = cascade_contributions(self.fallback)
+        self.weighted = self.contribution * self.out
+
+    def combined(self) -> torch.Tensor:
+        return self.weighted.sum(0)
+
+    def backward_combined(self, grad_combined: torch.Tensor, into: dict[nn.Parameter, torch.Tensor]) -> None:
+        """The actor's parameter gradients from the gradient of the combination C = sum_i w_i b_i, [B, D]."""
+        self.backward(*cascade_backward(self.fallback, self.weighted, self.contribution, grad_combined), into)
+
+    def backward(self, grad_out: torch.Tensor, grad_logit: torch.Tensor,
+                 into: dict[nn.Parameter, torch.Tensor]) -> None:
+        """The actor's parameter gradients from those of each net's output [n, B, D] and fallback logit."""
+        top = self.trunk[-1]
+        actor = self.actor
+        into[self.head_params[0]] = matmul(top.transpose(-1, -2), grad_out)
+        into[self.head_params[1]] = grad_out.sum(1, keepdim=True)
+        into[actor.fallback_weight] = matmul(top[1:].transpose(-1, -2), grad_logit)
+        into[actor.fallback_bias] = grad_logit.sum(1, keepdim=True)
+        grad_top = matmul(grad_out, self.head[0].transpose(-1, -2))
+        grad_top[1:] += matmul(grad_logit, self.fallback_head[0].transpose(-1, -2))
+        grads, _ = stacked_backward(self.hidden, self.obs, self.trunk, grad_top, self.activation, activate_last=True)
+        weight_grads_by_parameter(list(actor.hidden_weights), list(actor.hidden_biases), grads, into)
+
+
+def critic_layers(qf: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    return [(w.detach(), b.detach()) for w, b in zip(qf.weights, qf.biases)]
+
+
+def critic_input_grad(qf: nn.Module, obs: torch.Tensor, actions: torch.Tensor,
+                      grad_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Q values [m, B] of (obs, actions), and d(sum grad_q * Q)/d actions [B, A] (no weight gradient)."""
+    layers, activation = critic_layers(qf), activation_name(qf)
+    x = torch.cat([obs, actions], 1)
+    outs = stacked_forward(layers, x, activation, activate_last=False)
+    q = outs[-1].squeeze(-1)
+    _, grad_x = stacked_backward(layers, x, outs, grad_q(q).unsqueeze(-1), activation, activate_last=False,
+                                 weights=False, input_grad=True)
+    return q, grad_x[:, obs.shape[1]:]
+
+
+def critic_step(qf: nn.Module, optimizer: torch.optim.Optimizer, obs: torch.Tensor, actions: torch.Tensor,
+                target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """One Adam step of every critic on the mean squared error to `target` [B]: their values [m, B] and each
+    critic's loss [m]."""
+    layers, activation = critic_layers(qf), activation_name(qf)
+    x = torch.cat([obs, actions], 1)
+    outs = stacked_forward(layers, x, activation, activate_last=False)
+    q = outs[-1].squeeze(-1)
+    error = q - target
+    losses = error.pow(2).mean(1)
+    grads, _ = stacked_backward(layers, x, outs, (error * (2.0 / len(target))).unsqueeze(-1), activation,
+                                activate_last=False)
+    into: dict[nn.Parameter, torch.Tensor] = {}
+    weight_grads_by_parameter(list(qf.weights), list(qf.biases), grads, into)
+    apply_gradients(optimizer, into)
+    return q, losses
+
+
+def critic_values(qf: nn.Module, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    x = torch.cat([obs, actions], 1)
+    return stacked_forward(critic_layers(qf), x, activation_name(qf), activate_last=False)[-1].squeeze(-1)
+
+
+def apply_gradients(optimizer: torch.optim.Optimizer, grads: dict[nn.Parameter, torch.Tensor]) -> None:
+    """The optimizer's step with these gradients (`minimize` after its autograd.grad); every parameter it holds
+    must have one: a parameter the hand-written update does not know of (an edit's) raises here."""
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    missing = [tuple(p.shape) for p in params if p not in grads]
+    if missing:
+        raise KeyError(f"the optimizer holds a parameter of shape {missing[0]} the hand-written update has no "
+                       "gradient for")
+    step_with_gradients(optimizer, params, [grads[p] for p in params])
+
+
+@torch.no_grad()
+def lerp_targets(target: nn.Module, source: nn.Module, tau: float) -> None:
+    torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+
+
+# ----------------------------------------------------------------------------------------------
+# SAC (cascade_sac.py's sac_update)
+# ----------------------------------------------------------------------------------------------
+class SACFast:
+    """`sac_update` with hand-written gradients. `log_std_bounds`: the script's (LOG_STD_MIN, LOG_STD_MAX)."""
+
+    def __init__(self, log_std_bounds: tuple[float, float]):
+        self.log_std_min, self.log_std_max = log_std_bounds
+
+    def sample(self, actor: nn.Module, obs: torch.Tensor) -> dict:
+        """The actor's squashed Gaussian sample on obs, with what its backward pass needs."""
+        cascade = CascadePass(actor, obs, (actor.head_weight, actor.head_bias))
+        combined = cascade.combined()
+        a = actor.act_dim
+        # torch's tanh on the [B, A] outputs, as the script: log(1 - y^2) near |y| = 1 would turn the last-bit
+        # difference of another tanh into ~1e-10 of the log-prob
+        mean, bounded = combined[:, :a], torch.tanh(combined[:, a:])
+        log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (bounded + 1)
+        noise = torch.randn(mean.shape).to(mean.dtype)  # squashed_sample's draw: float32, the CPU generator
+        std = torch.exp(log_std)
+        y = torch.tanh(mean + std * noise)
+        scale, bias = actor.action_scale, actor.action_bias
+        squash = scale * (1 - y * y) + 1e-6
+        log_prob = (-0.5 * noise * noise - log_std - 0.5 * math.log(2 * math.pi) - torch.log(squash)).sum(1)
+        return {"cascade": cascade, "action": y * scale + bias, "log_prob": log_prob, "y": y, "noise": noise,
+                "std": std, "bounded": bounded, "squash": squash, "scale": scale}
+
+    def actor_grads(self, s: dict, grad_action: torch.Tensor, grad_log_prob: float) -> dict:
+        """d/d(actor's parameters) of sum(grad_action * action) + grad_log_prob * sum(log_prob)."""
+        y, scale = s["y"], s["scale"]
+        grad_y = grad_action * scale + grad_log_prob * 2 * y * scale / s["squash"]
+        grad_u = grad_y * (1 - y * y)
+        grad_log_std = grad_u * s["std"] * s["noise"] - grad_log_prob
+        half_range = 0.5 * (self.log_std_max - self.log_std_min)
+        grad_raw = grad_log_std * half_range * (1 - s["bounded"] * s["bounded"])
+        into: dict[nn.Parameter, torch.Tensor] = {}
+        s["cascade"].backward_combined(torch.cat([grad_u, grad_raw], 1), into)
+        return into
+
+    def __call__(self, args: Any, step_in_iteration: int, batch: tuple[torch.Tensor, ...], actor: nn.Module,
+                 qf: nn.Module, qf_target: nn.Module, q_optimizer: torch.optim.Optimizer,
+                 actor_optimizer: torch.optim.Optimizer, alpha: float, log_alpha: torch.Tensor,
+                 a_optimizer: torch.optim.Optimizer) -> dict:
+        b_obs, b_actions, b_rewards, b_next_obs, b_dones = batch
+        batch_size = len(b_obs)
+        following = self.sample(actor, b_next_obs)
+        min_qf_next = critic_values(qf_target, b_next_obs, following["action"]).min(0).values \
+            - alpha * following["log_prob"]
+        next_q_value = b_rewards + (1 - b_dones) * args.gamma * min_qf_next
+        qf_a_values, losses = critic_step(qf, q_optimizer, b_obs, b_actions, next_q_value)
+        out = {"qf_a_values": qf_a_values, "qf1_loss": losses[0], "qf2_loss": losses[1],
+               "qf_loss": losses[0] + losses[1]}
+
+        if step_in_iteration % args.policy_frequency == 0:
+            for _ in range(args.policy_frequency):
+                s = self.sample(actor, b_obs)
+
+                def grad_q(q: torch.Tensor, s: dict = s) -> torch.Tensor:  # d mean(-min_j Q_j) / dQ: the smaller critic
+                    minimum = q.min(0)
+                    s["min_q"] = minimum.values
+                    return torch.zeros_like(q).scatter_(0, minimum.indices.unsqueeze(0), -1.0 / batch_size)
+
+                _, grad_action = critic_input_grad(qf, b_obs, s["action"], grad_q)
+                out["actor_loss"] = (alpha * s["log_prob"] - s["min_q"]).mean()
+                apply_gradients(actor_optimizer, self.actor_grads(s, grad_action, alpha / batch_size))
+                if args.autotune:
+                    log_pi = self.sample(actor, b_obs)["log_prob"]
+                    alpha_loss = (-log_alpha.detach().exp() * (log_pi + -float(actor.act_dim))).mean()
+                    out["alpha_loss"] = alpha_loss
+                    apply_gradients(a_optimizer, {log_alpha: alpha_loss.reshape(1)})  # d/dlog_alpha = the loss
+                    alpha = log_alpha.exp().item()
+
+        if step_in_iteration % args.target_network_frequency == 0:
+            lerp_targets(qf_target, qf, args.tau)
+        out["alpha"] = alpha
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# DDPG (cascade_ddpg.py's ddpg_update)
+# ----------------------------------------------------------------------------------------------
+class DDPGFast:
+    """`ddpg_update` with hand-written gradients."""
+
+    @staticmethod
+    def act(actor: nn.Module, obs: torch.Tensor) -> tuple[CascadePass, torch.Tensor, torch.Tensor]:
+        """The actor's action on obs (and the pass and the squashed value before scaling, for the backward)."""
+        cascade = CascadePass(actor, obs, (actor.mu_weight, actor.mu_bias))
+        if actor.combine_before_tanh:
+            squashed = torch.tanh(cascade.combined())
+        else:
+            cascade.squashed = torch.tanh(cascade.out)
+            squashed = (cascade.contribution * cascade.squashed).sum(0)
+        return cascade, squashed, squashed * actor.action_scale + actor.action_bias
+
+    @staticmethod
+    def actor_grads(actor: nn.Module, cascade: CascadePass, squashed: torch.Tensor,
+                    grad_action: torch.Tensor) -> dict:
+        grad_squashed = grad_action * actor.action_scale
+        into: dict[nn.Parameter, torch.Tensor] = {}
+        if actor.combine_before_tanh:
+            cascade.backward_combined(grad_squashed * (1 - squashed * squashed), into)
+        else:  # C = sum_i w_i tanh(mu_i): the combination's gradient on the squashed outputs, then each tanh's
+            grad_each, grad_logit = cascade_backward(cascade.fallback, cascade.contribution * cascade.squashed,
+                                                     cascade.contribution, grad_squashed)
+            cascade.backward(grad_each * (1 - cascade.squashed * cascade.squashed), grad_logit, into)
+        return into
+
+    def __call__(self, args: Any, step_in_iteration: int, batch: tuple[torch.Tensor, ...], actor: nn.Module,
+                 target_actor: nn.Module, qf: nn.Module, qf_target: nn.Module, q_optimizer: torch.optim.Optimizer,
+                 actor_optimizer: torch.optim.Optimizer) -> dict:
+        b_obs, b_actions, b_rewards, b_next_obs, b_dones = batch
+        _, _, next_actions = self.act(target_actor, b_next_obs)
+        next_q_value = b_rewards + (1 - b_dones) * args.gamma * critic_values(qf_target, b_next_obs, next_actions)[0]
+        qf_a_values, losses = critic_step(qf, q_optimizer, b_obs, b_actions, next_q_value)
+        out = {"qf1_a_values": qf_a_values[0], "qf1_loss": losses[0]}
+
+        if step_in_iteration % args.policy_frequency == 0:
+            cascade, squashed, action = self.act(actor, b_obs)
+            q, grad_action = critic_input_grad(qf, b_obs, action, lambda q: torch.full_like(q, -1.0 / len(b_obs)))
+            out["actor_loss"] = -q[0].mean()
+            apply_gradients(actor_optimizer, self.actor_grads(actor, cascade, squashed, grad_action))
+            lerp_targets(target_actor, actor, args.tau)
+            lerp_targets(qf_target, qf, args.tau)
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The run-time check against the script's update, and the switch
+# ----------------------------------------------------------------------------------------------
+def float64_twins(arguments: tuple) -> tuple:
+    """The update's arguments with every module, optimizer (state included) and tensor copied to float64; a
+    tensor or parameter shared by several (log_alpha and its optimizer) stays shared."""
+    twin_of: dict[int, torch.Tensor] = {}
+
+    def tensor(t: torch.Tensor) -> torch.Tensor:
+        if id(t) not in twin_of:
+            twin = t.detach().double() if t.is_floating_point() else t.detach().clone()
+            twin_of[id(t)] = twin.requires_grad_(t.requires_grad)
+        return twin_of[id(t)]
+
+    def module(m: nn.Module) -> nn.Module:
+        twin = copy.deepcopy(m).double()
+        for original, copied in zip(m.parameters(), twin.parameters()):
+            twin_of[id(original)] = copied
+        return twin
+
+    def optimizer(o: torch.optim.Optimizer) -> torch.optim.Optimizer:
+        groups = [{**{k: v for k, v in g.items() if k != "params"}, "params": [twin_of[id(p)] for p in g["params"]]}
+                  for g in o.param_groups]
+        twin = type(o)(groups, **o.defaults)
+        # the state (moments, step counts) follows the params to float64; deep-copied first, as load_state_dict
+        # keeps a tensor that needs no cast (the fused Adam's float32 step counts) and the twin would step the run's
+        twin.load_state_dict(copy.deepcopy(o.state_dict()))
+        return twin
+
+    # modules and tensors first: optimizers refer to their parameters
+    copied = [module(a) if isinstance(a, nn.Module) else
+              tuple(tensor(t) for t in a) if isinstance(a, tuple) else
+              tensor(a) if isinstance(a, torch.Tensor) else a for a in arguments]
+    return tuple(optimizer(a) if isinstance(a, torch.optim.Optimizer) else c for a, c in zip(arguments, copied))
+
+
+def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out: dict,
+                 fast_out: dict) -> tuple[str | None, float]:
+    """What the fast update left differently from the script's (None: nothing beyond float64 rounding), and the
+    largest relative difference of all."""
+    if set(reference_out) != set(fast_out):
+        return f"the update returns {sorted(reference_out)}, the fast path {sorted(fast_out)}", math.inf
+    pairs: list[tuple[str, list, list, float, float]] = []  # (what, reference, fast, floor scale, tolerance)
+    for i, (original, ref, new) in enumerate(zip(arguments, reference, fast)):
+        if isinstance(original, nn.Module):
+            before = [p.detach().double() for p in original.parameters()]
+            names = [name for name, _ in original.named_parameters()]
+            ref_moves = [p.detach() - b for p, b in zip(ref.parameters(), before)]
+            fast_moves = [p.detach() - b for p, b in zip(new.parameters(), before)]
+            pairs += [(f"the change of argument {i + 1}'s {name}", [r], [f], max_abs(ref_moves), STEP_TOLERANCE)
+                      for name, r, f in zip(names, ref_moves, fast_moves)]
+        elif isinstance(original, torch.optim.Optimizer):
+            ref_states = [v for p in (p for g in ref.param_groups for p in g["params"]) for v in ref.state[p].values()
+                          if isinstance(v, torch.Tensor) and v.dim()]
+            new_states = [v for p in (p for g in new.param_groups for p in g["params"]) for v in new.state[p].values()
+                          if isinstance(v, torch.Tensor) and v.dim()]
+            if len(ref_states) != len(new_states):
+                return f"argument {i + 1} (an optimizer) holds another state", math.inf
+            pairs += [(f"argument {i + 1}'s optimizer state", [r], [f], max_abs(ref_states), TOLERANCE)
+                      for r, f in zip(ref_states, new_states)]
+        elif isinstance(original, torch.Tensor):
+            pairs.append((f"argument {i + 1}", [ref.detach()], [new.detach()], 0.0, TOLERANCE))
+    for key in reference_out:
+        r, f = torch.as_tensor(reference_out[key]).double(), torch.as_tensor(fast_out[key]).double()
+        pairs.append((f"'{key}'", [r.detach()], [f.detach()], 0.0, TOLERANCE))
+    worst = 0.0
+    for what, ref_tensors, fast_tensors, largest, tolerance in pairs:
+        r, f = ref_tensors[0], fast_tensors[0]
+        if r.shape != f.shape:
+            return f"{what} has shape {tuple(f.shape)}, not {tuple(r.shape)}", math.inf
+        if not r.numel():
+            continue
+        scale = max(r.abs().max().item(), f.abs().max().item(), FLOOR * largest, 1e-30)
+        error = (f - r).abs().max().item() / scale
+        if not error <= tolerance:
+            return f"{what} differs (max relative error {error:.1e})", error
+        worst = max(worst, error * TOLERANCE / tolerance)  # in units of TOLERANCE
+    return None, worst
+
+
+def max_abs(tensors: list[torch.Tensor]) -> float:
+    return max((t.abs().max().item() for t in tensors if t.numel()), default=0.0)
+
+
+class OffPolicyFastPath:
+    """Runs an update through the fast path or, when off, the script's `definition`, checking the fast path
+    against it (module docstring). `announce(message, step)` gets the one-line warning when it switches off."""
+
+    def __init__(self, enabled: bool, fast_update: Callable[..., dict],
+                 announce: Callable[[str, int], None] | None = None, span: int = 2):
+        self.on, self.fast_update, self.announce, self.span = enabled, fast_update, announce, span
+        self.optimizers: tuple = ()  # the optimizers of the latest update: new ones start a new iteration
+        self.updates = 0  # updates since then
+        self.checks = 0  # checks passed
+        self.worst = 0.0  # the largest difference a passed check saw (relative; a step's scaled by TOLERANCE/STEP_TOLERANCE)
+        self.check_seconds = 0.0
+        self.messages: list[str] = []
+
+    def update(self, definition: Callable[..., dict], *arguments: Any, step: int = 0) -> dict:
+        """`definition(*arguments)`, by the fast path when it is on (checked first when a check is due)."""
+        if not self.on:
+            return definition(*arguments)
+        optimizers = tuple(a for a in arguments if isinstance(a, torch.optim.Optimizer))
+        if len(optimizers) != len(self.optimizers) or any(a is not b for a, b in zip(optimizers, self.optimizers)):
+            self.optimizers, self.updates = optimizers, 0  # a new iteration, or a resumed run: check from its start
+        if self.updates % CHECK_EVERY < self.span:
+            try:
+                what = self.check(definition, arguments)
+            except Exception as exc:  # an edit the fast path cannot follow (a new layer, another activation...)
+                what = f"the fast update fails on these nets ({describe(exc)})"
+            if what is not None:
+                self.switch_off(what, step)
+                return definition(*arguments)
+        self.updates += 1
+        with torch.no_grad():
+            return self.fast_update(*arguments)
+
+    def check(self, definition: Callable[..., dict], arguments: tuple) -> str | None:
+        """Run the script's update and the fast one on float64 copies, from the same random state; what differs."""
+        start = time.perf_counter()
+        hooked = [tuple(p.shape) for a in arguments if isinstance(a, nn.Module) for p in a.parameters()
+                  if p._backward_hooks or getattr(p, "_post_accumulate_grad_hooks", None)]
+        if hooked:
+            return f"a parameter of shape {hooked[0]} has a gradient hook, which the hand-written update does not apply"
+        state, dtype = torch.get_rng_state(), torch.get_default_dtype()
+        # float64 noise too (torch.randn of the default dtype), else the script's float32 noise.pow(2) would be
+        # float32 rounding inside the float64 comparison
+        torch.set_default_dtype(torch.float64)
+        try:
+            reference = float64_twins(arguments)
+            reference_out = definition(*reference)
+            torch.set_rng_state(state)
+            fast = float64_twins(arguments)
+            with torch.no_grad():
+                fast_out = self.fast_update(*fast)
+            what, worst = disagreement(arguments, reference, fast, reference_out, fast_out)
+            if what is None:
+                self.checks += 1
+                self.worst = max(self.worst, worst)
+            return what
+        finally:
+            torch.set_rng_state(state)  # the run draws as if nothing had been checked
+            torch.set_default_dtype(dtype)
+            self.check_seconds += time.perf_counter() - start
+
+    def switch_off(self, what: str, step: int) -> None:
+        self.on = False
+        message = (f"fast update check at global_step={step}: {what}; continuing with the script's own update (as "
+                   "--autograd). If the update was edited on purpose, this is expected; edit "
+                   "cascade_plumbing/fast_offpolicy.py to match it to get the speed back")
+        self.messages.append(message)
+        if self.announce is not None:
+            self.announce(message, step)

@@ -1,0 +1,264 @@
+"""The off-policy fast path (cascade_plumbing/fast_offpolicy.py) against the scripts' own updates.
+
+- The hand-written SAC and DDPG updates leave what `sac_update` and `ddpg_update` leave (every parameter's change,
+  every optimizer state, every logged value) to float64 rounding, Cascade and baseline, --autotune on and off,
+  both DDPG squashes and activations, over consecutive updates (critic-only ones and ones with the actor's);
+  in float32 they agree to float32 rounding.
+- The run-time check catches an edit: of the script's update, of its nets, of the fast path itself; the run then
+  continues with the script's update, with one warning line; a check leaves the run's random stream as it was.
+- A real run keeps the fast path on, checks it, and `--autograd` turns it off.
+"""
+
+import copy
+import types
+
+import numpy as np
+import pytest
+import torch
+
+import cascade_ddpg as cd
+import cascade_sac as cs
+from cascade_plumbing import fast_offpolicy as fo
+
+OBS_DIM, ACT_DIM, BATCH = 7, 3, 64
+LOW, HIGH = np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 3.0])  # asymmetric bounds: scale and bias matter
+
+
+def batch(seed):
+    g = torch.Generator().manual_seed(seed)
+    obs, next_obs = torch.randn(BATCH, OBS_DIM, generator=g), torch.randn(BATCH, OBS_DIM, generator=g)
+    actions = torch.rand(BATCH, ACT_DIM, generator=g) * 2 - 1
+    rewards = torch.randn(BATCH, generator=g)
+    dones = (torch.arange(BATCH) % 5 == 0).float()
+    return obs, actions, rewards, next_obs, dones
+
+
+def perturb(module, scale, seed):
+    """Every parameter moved off its init, so that fallbacks differ between nets and rows and heads matter."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(scale * torch.randn(p.shape, generator=g))
+    return module
+
+
+def sac_setup(n, autotune, hidden=32, seed=0):
+    torch.manual_seed(seed)
+    args = cs.Args(n=n, autotune=autotune)
+    actor = cs.CascadeActor(OBS_DIM, ACT_DIM, hidden, 2, 0.5, LOW, HIGH)
+    for _ in range(n):
+        actor.add_base_net()
+    perturb(actor, 0.3, seed)
+    qf = cs.QNetworks(OBS_DIM, ACT_DIM, hidden_size=hidden)
+    qf_target = perturb(copy.deepcopy(qf), 0.05, seed + 1)
+    log_alpha = torch.zeros(1, requires_grad=True)
+    state = {"args": args, "actor": actor, "qf": qf, "qf_target": qf_target,
+             "q_optimizer": cs.make_adam(list(qf.parameters()), 1e-3),
+             "actor_optimizer": cs.make_adam(list(actor.parameters()), 3e-4),
+             "log_alpha": log_alpha, "a_optimizer": cs.make_adam([log_alpha], 1e-3), "alpha": 0.2}
+    return state
+
+
+def sac_arguments(state, step, seed):
+    s = state
+    return (s["args"], step, batch(seed), s["actor"], s["qf"], s["qf_target"], s["q_optimizer"],
+            s["actor_optimizer"], s["alpha"], s["log_alpha"], s["a_optimizer"])
+
+
+def ddpg_setup(n, combine_before_tanh, activation, seed=0):
+    torch.manual_seed(seed)
+    args = cd.Args(n=n, combine_before_tanh=combine_before_tanh, activation=activation)
+    actor = cd.CascadeActor(OBS_DIM, ACT_DIM, 16, 2, 0.5, LOW, HIGH, activation, combine_before_tanh)
+    for _ in range(n):
+        actor.add_base_net()
+    perturb(actor, 0.3, seed)
+    qf = cd.QNetworks(OBS_DIM, ACT_DIM, hidden_size=32, activation=activation)
+    return {"args": args, "actor": actor, "target_actor": perturb(copy.deepcopy(actor), 0.05, seed + 2), "qf": qf,
+            "qf_target": perturb(copy.deepcopy(qf), 0.05, seed + 1),
+            "q_optimizer": cd.make_adam(list(qf.parameters()), 3e-4, 1e-5),
+            "actor_optimizer": cd.make_adam(list(actor.parameters()), 3e-4, 1e-5)}
+
+
+def ddpg_arguments(state, step, seed):
+    s = state
+    return (s["args"], step, batch(seed), s["actor"], s["target_actor"], s["qf"], s["qf_target"],
+            s["q_optimizer"], s["actor_optimizer"])
+
+
+SAC_CASES = [(1, False), (1, True), (3, False), (3, True)]
+DDPG_CASES = [(n, before, act) for n in (1, 4) for before in (True, False) for act in ("tanh", "relu")]
+
+
+def checked_updates(fast_update, definition, state, arguments, steps=4):
+    """`steps` consecutive updates (the first with Adam's state creation, critic-only and actor steps), each
+    compared in float64 by the fast path's own check; returns the largest relative disagreement seen."""
+    path = fo.OffPolicyFastPath(True, fast_update)
+    for step in range(steps):
+        arguments_now = arguments(state, step, seed=step)
+        what = path.check(definition, arguments_now)
+        assert what is None, what
+        out = definition(*arguments_now)  # the run moves on by the script's own update
+        if "alpha" in out:
+            state["alpha"] = out["alpha"]
+    assert path.checks == steps
+    return path.worst
+
+
+@pytest.mark.parametrize("n,autotune", SAC_CASES)
+def test_sac_fast_update_equals_sac_update(n, autotune):
+    state = sac_setup(n, autotune)
+    worst = checked_updates(fo.SACFast((cs.LOG_STD_MIN, cs.LOG_STD_MAX)), cs.sac_update, state, sac_arguments)
+    assert worst < 1e-9, worst  # float64 rounding, amplified near |tanh| = 1: ~1e-11; the run tolerates 1e-8
+
+
+@pytest.mark.parametrize("n,before,activation", DDPG_CASES)
+def test_ddpg_fast_update_equals_ddpg_update(n, before, activation):
+    state = ddpg_setup(n, before, activation)
+    worst = checked_updates(fo.DDPGFast(), cd.ddpg_update, state, ddpg_arguments)
+    assert worst < 1e-9, worst
+
+
+def test_float32_fast_update_tracks_the_definition():
+    """In the run's float32 the two agree to float32 rounding over a few updates (the same draws)."""
+    for setup, arguments, fast, definition in (
+            (lambda: sac_setup(3, True), sac_arguments, fo.SACFast((cs.LOG_STD_MIN, cs.LOG_STD_MAX)), cs.sac_update),
+            (lambda: ddpg_setup(4, True, "tanh"), ddpg_arguments, fo.DDPGFast(), cd.ddpg_update)):
+        reference, ours = setup(), setup()
+        for step in range(4):
+            torch.manual_seed(100 + step)
+            out = definition(*arguments(reference, step, step))
+            torch.manual_seed(100 + step)
+            with torch.no_grad():
+                fast_out = fast(*arguments(ours, step, step))
+            reference["alpha"] = ours["alpha"] = out.get("alpha", 0.0)
+            assert set(out) == set(fast_out)
+            for key in out:
+                assert torch.allclose(torch.as_tensor(fast_out[key]).float(), torch.as_tensor(out[key]).float(),
+                                      rtol=1e-4, atol=1e-6), key
+        for key in ("actor", "qf", "qf_target"):
+            for p, q in zip(reference[key].parameters(), ours[key].parameters()):
+                assert torch.allclose(p, q, rtol=1e-4, atol=1e-6), key
+
+
+def wrong(function, **changes):
+    """`function` with some of its globals replaced (an edit of the script a researcher might make)."""
+    return types.FunctionType(function.__code__, {**function.__globals__, **changes}, function.__name__,
+                              function.__defaults__, function.__closure__)
+
+
+class L1Loss:
+    """An edit of the critics' loss: F.mse_loss replaced by the mean absolute error."""
+
+    @staticmethod
+    def mse_loss(a, b):
+        return (a - b).abs().mean()
+
+
+class ShiftedActor(cs.CascadeActor):
+    """An edit of the net: the mean gets a constant offset."""
+
+    def forward(self, obs):
+        mean, log_std, fallback, contribution = super().forward(obs)
+        return mean + 0.01, log_std, fallback, contribution
+
+
+def edited(script, edit, state, monkeypatch):
+    """The script's update with `edit` made; the state is changed where the edit is of the net."""
+    if edit == "critic loss":
+        return wrong(script.sac_update if script is cs else script.ddpg_update, F=L1Loss)
+    if edit == "contributions":  # the nets' combination: reversed
+        monkeypatch.setattr(script, "contributions", lambda fallback, original=script.contributions:
+                            original(fallback).flip(0))
+    elif edit == "soft update":  # half the target step
+        monkeypatch.setattr(script, "soft_update", lambda target, source, tau, original=script.soft_update:
+                            original(target, source, tau / 2))
+    elif edit == "log-std bound":  # [-6, 2] instead of [-5, 2]
+        monkeypatch.setattr(cs, "bounded_log_std", lambda raw: -6.0 + 4.0 * (torch.tanh(raw) + 1))
+    elif edit == "net":
+        actor = ShiftedActor(OBS_DIM, ACT_DIM, 32, 2, 0.5, LOW, HIGH)
+        for _ in range(state["actor"].size):
+            actor.add_base_net()
+        actor.load_state_dict(state["actor"].state_dict())
+        state["actor"], state["actor_optimizer"] = actor, cs.make_adam(list(actor.parameters()), 3e-4)
+    return cs.sac_update if script is cs else cd.ddpg_update
+
+
+@pytest.mark.parametrize("script,edit", [(cs, e) for e in ("critic loss", "contributions", "soft update",
+                                                             "log-std bound", "net")]
+                         + [(cd, e) for e in ("critic loss", "contributions", "soft update")])
+def test_check_catches_an_edit_of_the_script(script, edit, monkeypatch):
+    """An edit of the script's update or nets switches the fast path off at its first checks, with one message, and
+    the run goes on with the edited update."""
+    state = sac_setup(3, True) if script is cs else ddpg_setup(3, True, "tanh")
+    definition = edited(script, edit, state, monkeypatch)
+    messages = []
+    fast = fo.SACFast((cs.LOG_STD_MIN, cs.LOG_STD_MAX)) if script is cs else fo.DDPGFast()
+    path = fo.OffPolicyFastPath(True, fast, announce=lambda message, step: messages.append(message))
+    arguments = sac_arguments if script is cs else ddpg_arguments
+    for step in range(3):
+        out = path.update(definition, *arguments(state, step, step), step=step)
+        state["alpha"] = out.get("alpha", 0.0)
+    assert not path.on and len(messages) == 1 and "differs" in messages[0], messages
+
+
+def test_check_catches_a_wrong_fast_path(monkeypatch):
+    """A fast path that computes a wrong gradient (here: the fallback logits' sign) is switched off, and the
+    update of that step is the definition's."""
+    def wrong_backward(fallback, weighted, contribution, grad):
+        grad_out, grad_logit = cascade_backward(fallback, weighted, contribution, grad)
+        return grad_out, -grad_logit
+
+    cascade_backward = fo.cascade_backward
+    monkeypatch.setattr(fo, "cascade_backward", wrong_backward)
+    state = ddpg_setup(3, True, "tanh")
+    reference = copy.deepcopy(state)
+    path = fo.OffPolicyFastPath(True, fo.DDPGFast())
+    path.update(cd.ddpg_update, *ddpg_arguments(state, 0, 0), step=0)
+    assert not path.on and "fallback" in path.messages[0]
+    cd.ddpg_update(*ddpg_arguments(reference, 0, 0))
+    for p, q in zip(state["actor"].parameters(), reference["actor"].parameters()):
+        assert torch.equal(p, q)
+
+
+def test_a_check_leaves_the_random_stream_and_the_run_as_without_it():
+    """A checked update and an unchecked one leave the same nets and the same torch random state, bit for bit."""
+    results = []
+    for check_every in (fo.CHECK_EVERY, 10**9):
+        state = sac_setup(2, True)
+        torch.manual_seed(5)
+        path = fo.OffPolicyFastPath(True, fo.SACFast((cs.LOG_STD_MIN, cs.LOG_STD_MAX)))
+        if check_every != fo.CHECK_EVERY:
+            path.span = 0  # never due
+        for step in range(3):
+            out = path.update(cs.sac_update, *sac_arguments(state, step, step), step=step)
+            state["alpha"] = out["alpha"]
+        results.append((torch.get_rng_state(), [p.clone() for p in state["actor"].parameters()],
+                        [p.clone() for p in state["qf"].parameters()], path.checks))
+    (rng_a, actor_a, qf_a, checks_a), (rng_b, actor_b, qf_b, checks_b) = results
+    assert checks_a == 2 and checks_b == 0
+    assert torch.equal(rng_a, rng_b)
+    assert all(torch.equal(p, q) for p, q in zip(actor_a + qf_a, actor_b + qf_b))
+
+
+def test_checks_come_at_each_iteration_start_and_every_check_every_updates(monkeypatch):
+    monkeypatch.setattr(fo, "CHECK_EVERY", 5)
+    state = ddpg_setup(1, True, "tanh")
+    path = fo.OffPolicyFastPath(True, fo.DDPGFast(), span=2)
+    for step in range(12):
+        path.update(cd.ddpg_update, *ddpg_arguments(state, step, step), step=step)
+    assert path.checks == 6  # updates 0, 1, 5, 6, 10, 11
+    state["actor_optimizer"] = cd.make_adam(list(state["actor"].parameters()), 3e-4, 1e-5)  # a new iteration
+    path.update(cd.ddpg_update, *ddpg_arguments(state, 0, 0), step=12)
+    assert path.checks == 7 and path.on
+
+
+@pytest.mark.parametrize("script", [cs, cd])
+def test_a_run_keeps_the_fast_path_on_and_autograd_turns_it_off(script, tmp_path):
+    common = dict(env_id="Pendulum-v1", n=2, k=400, learning_starts=100, batch_size=32, eval_every=0, quiet=True,
+                  track_dir=str(tmp_path))
+    result = script.train(script.Args(**common))
+    fast = result["fast_path"]
+    assert fast.on and not fast.messages
+    assert fast.checks == 2 * 2  # two iterations, the span of two updates at each start
+    result = script.train(script.Args(**common, autograd=True))
+    assert not result["fast_path"].on and result["fast_path"].checks == 0
