@@ -17,9 +17,11 @@ once the full stack is updated:
   without; SAC only, not in the total: alpha is fixed by default), targets (SAC: with the target update,
   less without; DDPG: the script's soft_update of both targets, per env step), sampling (buffer.sample);
 - peak RSS of the process;
-- the arithmetic floor of an update: the self time of its compute kernels (matmuls, activations and their
-  backward, the fused Adam) under torch.profiler, per update (the profiler slows the rest, not the kernels);
-  what no removal of per-operation overhead can go below with these kernels on this CPU;
+- the arithmetic of the script's own update (`sac_update`, `ddpg_update`): the self time of its torch compute
+  kernels (matmuls, activations and their backward, the fused Adam) under torch.profiler, per update (the
+  profiler slows the rest, not the kernels); what no removal of per-operation overhead can go below with these
+  kernels on this CPU. The fast path (the default; `--autograd` also measures the scripts without it) does the
+  same arithmetic partly in numpy (tanh, the products), which the profiler does not see, and can go below it;
 - the env's own limit: steps/s of the same wrapped training env with random actions (`env_sps`).
 
 `--cleanrl DIR --cleanrl-python PY` also times whole processes, interleaved: the SAC baseline
@@ -30,6 +32,7 @@ own dependencies in the venv of PY; nothing of it is copied here), --whole-rando
 
     python benchmarks/offpolicy.py                        # Hopper-v4, all four configurations
     python benchmarks/offpolicy.py --env-id HalfCheetah-v4 --configs sac_baseline ddpg_baseline
+    python benchmarks/offpolicy.py --autograd             # with and without the fast path, interleaved
     python benchmarks/offpolicy.py --ref HEAD~1           # this tree and an older commit, interleaved
     python benchmarks/offpolicy.py --cuda                 # the nets on a GPU (compare with a CPU run on that machine)
     python benchmarks/offpolicy.py --configs sac_baseline --cleanrl ../cleanrl --cleanrl-python ../cleanrl/.venv/bin/python
@@ -81,6 +84,10 @@ class Args:
     """the nets on the GPU (the scripts' --cuda): timings wait for the GPU, the floor is its kernels' busy time"""
     ref: str | None = None
     """also measure every configuration at this git revision, side by side"""
+    autograd: bool = False
+    """also measure every configuration with the scripts' --autograd (their own update, no fast path), side by side"""
+    only_autograd: bool = False
+    """internal: this worker runs with the script's --autograd"""
     json: bool = False
     """print the results as JSON instead of a table"""
     cleanrl: str | None = None
@@ -125,7 +132,7 @@ def timed(fn, calls: int) -> float:
     return (time.perf_counter() - start) / calls * 1e3
 
 
-def split_sac(script, a: Args, update_args: tuple, buffer) -> dict:
+def split_sac(script, update_function, a: Args, update_args: tuple, buffer) -> dict:
     args, _, _, *objects = update_args
     pf = args.policy_frequency
     never = 10**9  # a delay that never comes round: that part is skipped
@@ -135,7 +142,7 @@ def split_sac(script, a: Args, update_args: tuple, buffer) -> dict:
     device = update_args[2][0].device
 
     def update(run_args, step):
-        return lambda: script.sac_update(run_args, step, buffer.sample(args.batch_size, device), *objects)
+        return lambda: update_function(run_args, step, buffer.sample(args.batch_size, device), *objects)
 
     variants = {"sampling": lambda: buffer.sample(args.batch_size, device), "critic": update(plain, 1),
                 "critic+targets": update(with_targets, 1), "critic+actor": update(plain, pf),
@@ -147,13 +154,13 @@ def split_sac(script, a: Args, update_args: tuple, buffer) -> dict:
             "alpha": (ms["critic+actor+alpha"] - ms["critic+actor"]) / pf}
 
 
-def split_ddpg(script, a: Args, update_args: tuple, buffer) -> dict:
+def split_ddpg(script, update_function, a: Args, update_args: tuple, buffer) -> dict:
     args, _, batch, actor, target_actor, qf, qf_target, *_ = update_args
     pf = args.policy_frequency
     device = batch[0].device
 
     def update(step):
-        return lambda: script.ddpg_update(args, step, buffer.sample(args.batch_size, device), *update_args[3:])
+        return lambda: update_function(args, step, buffer.sample(args.batch_size, device), *update_args[3:])
 
     def targets():
         script.soft_update(target_actor, actor, args.tau)
@@ -243,6 +250,8 @@ def run_worker(config: str, a: Args) -> dict:
     update = getattr(script, update_name)
     k = a.k * ITERATIONS[script_name] // n  # the same run length for a Cascade and its baseline
     first_measured = k - a.k  # step in the last iteration: the last --k steps of the run for every configuration
+    if a.only_autograd:
+        extra = {**extra, "autograd": True}
     args = script.Args(env_id=a.env_id, k=k, learning_starts=a.k // 4, keep_buffer=True,
                        restart_on_new_net=False, eval_every=0, eval_members=False, quiet=True,
                        torch_threads=a.threads, cuda=a.cuda, track_dir=tempfile.mkdtemp(prefix="offpolicy_"), **extra)
@@ -253,34 +262,62 @@ def run_worker(config: str, a: Args) -> dict:
     def on_iteration_start(s: dict) -> None:
         state["buffer"] = s["buffer"]
 
-    def measured_update(*update_args):
+    def run_update(*update_args):
+        """The update as the run makes it: the fast path's (the scripts' section 2, when it is on), else the
+        script's own; for the split, outside the run's checks."""
+        fast = state.get("fast")
+        if fast is not None and fast.on:
+            with torch.no_grad():
+                return fast.fast_update(*update_args)
+        return update(*update_args)
+
+    def measured_update(*update_args, through=None):
         if update_args[3].size < n or update_args[1] < first_measured:  # not yet the run's last --k steps
             return {"alpha": update_args[8]} if script_name == "cascade_sac" else {}
-        out = update(*update_args)
+        out = through(*update_args) if through is not None else update(*update_args)
         synchronize()
         marks.append(time.perf_counter())
         if len(marks) == a.warmup + a.updates + 1:
-            # the window closes here; the split below calls the script's own update again, not this function
+            # the window closes here; the split below calls the update again, not this function
             state["sps"] = a.updates / (marks[-1] - marks[a.warmup])
             setattr(script, update_name, update)
             splitter = split_sac if script_name == "cascade_sac" else split_ddpg
-            state["parts"] = splitter(script, a, update_args, state["buffer"])
+            state["parts"] = splitter(script, run_update, a, update_args, state["buffer"])
             args, device = update_args[0], update_args[2][0].device
+            # the arithmetic of the script's own update: torch.profiler does not see the fast path's numpy kernels
             state["floor"] = arithmetic_floor([
                 (lambda step=step: update(args, step, state["buffer"].sample(args.batch_size, device), *update_args[3:]))
                 for step in range(args.policy_frequency)], cuda=a.cuda)
             raise Stop
         return out
 
-    setattr(script, update_name, measured_update)
+    if hasattr(script, "make_fast_path"):  # the update goes through the fast path's update(definition, ...)
+        make_fast_path = script.make_fast_path
+
+        class Measured:
+            def __init__(self, fast):
+                self.fast = fast
+
+            def update(self, definition, *update_args, step=0):
+                return measured_update(*update_args, through=lambda *u: self.fast.update(definition, *u, step=step))
+
+        def measured_fast_path(*make_args):
+            state["fast"] = make_fast_path(*make_args)
+            return Measured(state["fast"])
+
+        script.make_fast_path = measured_fast_path
+    else:  # an older tree (--ref): the loop calls the update function by its name
+        setattr(script, update_name, measured_update)
     try:
         script.train(args, on_iteration_start=on_iteration_start)
     except Stop:
         pass
+    fast = state.get("fast")
     sps = state["sps"]
     parts = state["parts"]
     total = sum(v for k, v in parts.items() if k != "alpha")
     return {"config": config, "sps": sps, "parts_ms": parts, "update_ms": total, "floor_ms": state["floor"],
+            "fast_path": None if fast is None else fast.on,
             "env_sps": env_limit(a.env_id, args.obs_reward_clip), "torch": torch.__version__,
             "device": torch.cuda.get_device_name() if a.cuda else "cpu",
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
@@ -342,10 +379,8 @@ def main() -> None:
     unknown = [c for c in a.configs if c not in CONFIGS]
     if unknown:
         sys.exit(f"error: unknown --configs {unknown} (known: {', '.join(CONFIGS)})")
-    runs = [(c, "this", ROOT) for c in a.configs]
-    if a.ref:
-        ref_root = export(a.ref)
-        runs = [r for c in a.configs for r in ((c, "this", ROOT), (c, "ref", ref_root))]
+    trees = [("this", ROOT)] + ([("autograd", ROOT)] if a.autograd else []) + ([("ref", export(a.ref))] if a.ref else [])
+    runs = [(c, tree, root) for c in a.configs for tree, root in trees]
     results: dict[tuple[str, str], list[dict]] = {(c, t): [] for c, t, _ in runs}
     for repeat in range(a.repeats):
         for config, tree, root in runs:  # interleaved, so slow drifts of the machine hit every config alike
@@ -353,6 +388,7 @@ def main() -> None:
             for name in ("env_id", "k", "warmup", "updates", "calls", "rounds", "threads"):
                 cmd += [f"--{name.replace('_', '-')}", str(getattr(a, name))]
             cmd += ["--cuda"] if a.cuda else []
+            cmd += ["--only-autograd"] if tree == "autograd" else []
             # the scripts from `root`, the package too (PYTHONPATH precedes the editable install)
             env = {**os.environ, "PYTHONPATH": root}
             out = subprocess.run(cmd, capture_output=True, text=True, cwd=root, env=env)
@@ -374,13 +410,14 @@ def main() -> None:
             "env_sps": statistics.median(r["env_sps"] for r in rs),
             "peak_rss_mb": statistics.median(r["peak_rss_mb"] for r in rs)}
     ratios = {}
-    if a.ref:
+    for other in [tree for tree, _ in trees[1:]]:
         for config in a.configs:
-            this, ref = results[(config, "this")], results[(config, "ref")]
-            sps = [t["sps"] / r["sps"] for t, r in zip(this, ref)]  # pairs run next to each other
-            upd = [r["update_ms"] / t["update_ms"] for t, r in zip(this, ref)]
-            ratios[config] = {"sps": statistics.median(sps), "sps_range": [min(sps), max(sps)],
-                              "update_speedup": statistics.median(upd), "update_speedup_range": [min(upd), max(upd)]}
+            this, them = results[(config, "this")], results[(config, other)]
+            sps = [t["sps"] / r["sps"] for t, r in zip(this, them)]  # pairs run next to each other
+            upd = [r["update_ms"] / t["update_ms"] for t, r in zip(this, them)]
+            ratios[f"{config} / {a.ref if other == 'ref' else '--autograd'}"] = {
+                "sps": statistics.median(sps), "sps_range": [min(sps), max(sps)],
+                "update_speedup": statistics.median(upd), "update_speedup_range": [min(upd), max(upd)]}
     whole = against_cleanrl(a) if a.cleanrl else {}
     meta = dataclasses.asdict(a) | {"cpus": os.cpu_count(), "python": sys.version.split()[0],
                                     "load_avg": os.getloadavg()}
@@ -391,17 +428,18 @@ def main() -> None:
           f"warm-up updates; split from {a.rounds} x {a.calls} calls per part; {a.threads} torch thread(s); "
           f"{'nets on the GPU (' + results[runs[0][:2]][0]['device'] + '), floor = GPU kernel time; ' if a.cuda else ''}"
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
-    print("| configuration | tree | steps/s | env alone, steps/s | ms/update | arithmetic floor | sampling | critic | "
+    print("| configuration | tree | steps/s | env alone, steps/s | ms/update | autograd kernels | sampling | critic | "
           "actor | targets | (alpha) | peak RSS MB |")
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for key, r in summary.items():
         config, tree = key.split("@")
         p = r["parts_ms"]
-        label = a.ref if tree == "ref" else "this tree"
+        label = {"ref": a.ref, "autograd": "this tree, --autograd"}.get(tree, "this tree")
         print(f"| {config} | {label} | {r['sps']:.0f} | {r['env_sps']:.0f} | {r['update_ms']:.2f} | {r['floor_ms']:.2f} | "
               + " | ".join(f"{p[name]:.2f}" for name in PARTS) + f" | {r['peak_rss_mb']:.0f} |")
-    for config, q in ratios.items():
-        print(f"{config}: this tree / {a.ref}: steps/s x{q['sps']:.2f} [{q['sps_range'][0]:.2f}, "
+    for pair, q in ratios.items():
+        config, other = pair.split(" / ")
+        print(f"{config}: this tree / {other}: steps/s x{q['sps']:.2f} [{q['sps_range'][0]:.2f}, "
               f"{q['sps_range'][1]:.2f}], update speed x{q['update_speedup']:.2f} "
               f"[{q['update_speedup_range'][0]:.2f}, {q['update_speedup_range'][1]:.2f}]")
     if whole:
