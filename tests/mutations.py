@@ -26,6 +26,7 @@ import tyro
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FLAGSHIP, FAST, DISCRETE = "cascade_ppo_continuous.py", "cascade_plumbing/fast.py", "cascade_ppo_discrete.py"
 SAC, DDPG = "cascade_sac.py", "cascade_ddpg.py"
+FAST_OFFPOLICY = "cascade_plumbing/fast_offpolicy.py"
 HACKING_TEST = "tests/test_hacking.py::test_an_edit_of_section_1_is_never_silently_wrong"
 OPTIMIZER_RATES_TEST = "tests/test_sac_ddpg.py::test_each_optimizer_runs_at_its_learning_rate"
 # the independent references (a plain loop over the nets, CleanRL's formulas, autograd) first; then the hacking
@@ -389,6 +390,18 @@ MUTATIONS += [
     Mutation("flagship: a resume passes the saved frozen count through freeze_below again", FLAGSHIP,
              'actor.num_frozen = checkpoint["num_frozen"]', 'actor.freeze_below(checkpoint["num_frozen"])',
              ("tests/test_hacking.py::test_a_resumed_actor_keeps_its_saved_frozen_count_through_an_edited_freeze_below",)),
+    # the off-policy fast path (cascade_plumbing/fast_offpolicy.py): its math, and its run-time check
+    *[Mutation(f"fast off-policy: {name}", FAST_OFFPOLICY, old, new, ("tests/test_fast_offpolicy.py",)) for name, old, new in (
+        ("dC/dlogit with S_i for S_(i-1)", "partial = weighted[:-1].cumsum(0)", "partial = weighted[1:].cumsum(0)"),
+        ("ReLU's gradient through negative inputs", "return torch.ops.aten.threshold_backward(grad, out, 0)",
+         "return grad"),
+        ("SAC's log-prob without the squash's gradient",
+         'grad_y = grad_action * scale + grad_log_prob * 2 * y * scale / s["squash"]', "grad_y = grad_action * scale"),
+        ("the critics' MSE gradient halved", "(error * (2.0 / len(target)))", "(error * (1.0 / len(target)))"),
+        ("DDPG's target actor never moves", "lerp_targets(target_actor, actor, args.tau)", "pass"),
+        ("a disagreement never switches the fast path off", "if not error <= tolerance:", "if False:"),
+        ("a check draws from the run's random stream", "torch.set_rng_state(state)  # the run draws as if", "pass  #"),
+    )],
 ]
 
 
