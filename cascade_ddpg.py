@@ -62,9 +62,9 @@ class Args:
     torch_deterministic: bool = True
     """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
-    """torch CPU threads; 1: these nets are too small for a second thread to pay (README, speed of SAC and DDPG)"""
+    """CPU threads of torch and of numpy's BLAS; 1: these nets are too small for a second thread to pay (README, speed of SAC and DDPG)"""
     autograd: bool = False
-    """update with the script's own ddpg_update (autograd) only, no fast path (slower; the same results up to float rounding)"""
+    """act with `explore` and update with `ddpg_update` (autograd) only, no fast paths (slower; the same results up to float rounding)"""
     cuda: bool = False
     """train on the GPU if torch sees one (slower for these small nets: ~0.5x one CPU core, README "SAC and DDPG"); --evaluate runs on the CPU"""
     track_dir: str = "runs"
@@ -298,6 +298,12 @@ def add_noise(action: torch.Tensor, actor: CascadeActor, noise: float,
     return torch.maximum(torch.minimum(action, high), low)
 
 
+def explore(actor: CascadeActor, obs: torch.Tensor, noise: float) -> torch.Tensor:
+    """The action taken in the training env for obs [B, obs_dim]: the cascade's action plus the exploration noise."""
+    action, _, _ = actor(obs)
+    return add_noise(action, actor, noise)
+
+
 def count_parameters(*modules: nn.Module) -> int:
     return sum(p.numel() for m in modules for p in m.parameters())
 
@@ -457,11 +463,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 learning = len(buffer) > args.learning_starts
             if random_action:
                 actions = run.random_actions()
-            else:
-                with torch.inference_mode():  # acting: no autograd bookkeeping at all
-                    actions, _, _ = actor(torch.as_tensor(run.next_obs, dtype=torch.float32, device=device))
-                    actions = add_noise(actions, actor, args.exploration_noise)
-                actions = actions.cpu().numpy()
+            else:  # explore(actor, obs, noise), by the fast path when it is on: edit explore, not this line
+                actions = fast.act(explore, actor, run.next_obs, args.exploration_noise, step=global_step)
             run.step(actions, buffer, global_step)
 
             if learning:
@@ -534,11 +537,11 @@ def member_policy(actor: CascadeActor, net: int, noise: float) -> Policy:
 
 
 # ----------------------------------------------------------------------------------------------
-# Fast path: the same update with hand-written gradients (cascade_plumbing/fast_offpolicy.py; ~1.2-1.5x faster
-# updates on CPU, README "SAC and DDPG"), checked against `ddpg_update` while the run trains: on the first updates
-# of each iteration, then every 1000 updates, both run on float64 copies from the same random state. Edit
-# `ddpg_update` and the nets above, not the fast path: an edit it does not reproduce switches it off with one
-# warning line, and the run continues exactly as --autograd runs it. On the CPU only.
+# Fast paths: the same update with hand-written gradients, and the same acting in numpy
+# (cascade_plumbing/fast_offpolicy.py; README "SAC and DDPG"), checked against `ddpg_update` and `explore` while the
+# run trains: at each new net, then every 1000 steps, both run on float64 copies from the same random state. Edit
+# `ddpg_update`, `explore` and the nets above, not the fast paths: an edit they do not reproduce switches them off
+# with one warning line, and the run continues exactly as --autograd runs it. On the CPU only.
 # ----------------------------------------------------------------------------------------------
 def make_fast_path(args: Args, device: torch.device, run: OffPolicyRun | None = None) -> OffPolicyFastPath:
     # each check spans enough consecutive updates to include the actor and the targets

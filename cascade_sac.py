@@ -58,9 +58,9 @@ class Args:
     torch_deterministic: bool = True
     """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
-    """torch CPU threads; 1: a second one sped the 256-wide SAC baseline up by only ~1.15x in wall-clock for ~1.5x the CPU time (README, speed of SAC and DDPG), so two runs side by side finish sooner than one run on two threads"""
+    """CPU threads of torch and of numpy's BLAS; 1: a second one sped the 256-wide SAC baseline up by only ~1.15x in wall-clock for ~1.5x the CPU time (README, speed of SAC and DDPG), so two runs side by side finish sooner than one run on two threads"""
     autograd: bool = False
-    """update with the script's own sac_update (autograd) only, no fast path (slower; the same results up to float rounding)"""
+    """act with `explore` and update with `sac_update` (autograd) only, no fast paths (slower; the same results up to float rounding)"""
     cuda: bool = False
     """train on the GPU if torch sees one (~1.4x the steps/s of one CPU core on an H200 machine, README "SAC and DDPG"); --evaluate runs on the CPU"""
     track_dir: str = "runs"
@@ -346,6 +346,12 @@ def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
     torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
 
 
+def explore(actor: CascadeActor, obs: torch.Tensor) -> torch.Tensor:
+    """The action taken in the training env for obs [B, obs_dim]: a sample of the whole cascade's squashed Gaussian."""
+    action, _, _ = actor.get_action(obs)
+    return action
+
+
 # ----------------------------------------------------------------------------------------------
 # The SAC update (CleanRL's sac_continuous_action, the whole cascade as the actor)
 # ----------------------------------------------------------------------------------------------
@@ -476,10 +482,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 learning = len(buffer) > args.learning_starts
             if random_action:
                 actions = run.random_actions()
-            else:
-                with torch.inference_mode():  # acting: no autograd bookkeeping at all
-                    actions, _, _ = actor.get_action(torch.as_tensor(run.next_obs, dtype=torch.float32, device=device))
-                actions = actions.cpu().numpy()
+            else:  # explore(actor, obs), by the fast path when it is on: edit explore, not this line
+                actions = fast.act(explore, actor, run.next_obs, step=global_step)
             run.step(actions, buffer, global_step)
 
             if learning:
@@ -560,11 +564,11 @@ def member_policy(actor: CascadeActor, net: int, deterministic: bool) -> Policy:
 
 
 # ----------------------------------------------------------------------------------------------
-# Fast path: the same update with hand-written gradients (cascade_plumbing/fast_offpolicy.py; ~1.2-1.5x faster
-# updates on CPU, README "SAC and DDPG"), checked against `sac_update` while the run trains: on the first updates
-# of each iteration, then every 1000 updates, both run on float64 copies from the same random state. Edit
-# `sac_update` and the nets above, not the fast path: an edit it does not reproduce switches it off with one
-# warning line, and the run continues exactly as --autograd runs it. On the CPU only.
+# Fast paths: the same update with hand-written gradients, and the same acting in numpy
+# (cascade_plumbing/fast_offpolicy.py; README "SAC and DDPG"), checked against `sac_update` and `explore` while the
+# run trains: at each new net, then every 1000 steps, both run on float64 copies from the same random state. Edit
+# `sac_update`, `explore` and the nets above, not the fast paths: an edit they do not reproduce switches them off
+# with one warning line, and the run continues exactly as --autograd runs it. On the CPU only.
 # ----------------------------------------------------------------------------------------------
 def make_fast_path(args: Args, device: torch.device, run: OffPolicyRun | None = None) -> OffPolicyFastPath:
     # each check spans enough consecutive updates to include the actor, the temperature and the targets

@@ -1,23 +1,26 @@
 """Fast paths of the off-policy scripts: the same SAC and DDPG updates as the scripts' `sac_update` and
-`ddpg_update`, with the gradients written out by hand and the matrix products done by numpy's BLAS.
+`ddpg_update`, with the gradients written out by hand, and the same acting as their `explore`, in numpy.
 
-Why: on the AMD EPYC CPUs we run on, torch's CPU build multiplies through Intel's MKL, which takes that CPU's slow
-code path (README, "SAC and DDPG"): a 256x256 by 256x256 product ran 1.7x slower than numpy's OpenBLAS, a
-256-wide layer's one- or six-column head 8-10x slower, and torch's tanh 7x slower than numpy's. Elementwise work
-stays in torch, which is the faster of the two there. The fast update is the script's update, step for step: the
-critics' regression to the same targets, the same actor loss, the same temperature update, the same Adam
-(`apply_gradients`, the fused kernel that `minimize` also calls) and the same soft target updates, drawing the
-same random numbers from the same torch generator in the same order, so a run follows the same trajectory up to
-float rounding.
+Why: an update of these small nets is mostly per-operation overhead (autograd's graph, torch's dispatch), and on
+the AMD EPYC CPUs we run on torch's CPU build computes tanh ~7x and a 256-wide layer's few-column head ~8x slower
+than numpy does (its matmuls go through Intel's MKL; README, "SAC and DDPG"). So the fast update writes each
+gradient out (elementwise work in torch, the products and tanh through numpy on views of the same memory), and
+acting runs the one observation through numpy views of the live weights. They are the script's update and
+acting, step for step: the critics' regression to the same targets, the same actor loss, the same temperature
+update, the same Adam (`step_with_gradients`, the fused kernel that `minimize` also calls) and the same soft
+target updates, drawing the same random numbers from the same torch generator in the same order, so a run
+follows the same trajectory up to float rounding.
 
 Nothing here is a definition. `OffPolicyFastPath.update(definition, *arguments)` runs the script's own update
 (`definition`) and this one on float64 copies of everything it touches (nets, targets, optimizers and their state,
 the temperature), from the same random state, on the first updates with each new actor optimizer (each Cascade
-iteration's first, a resumed run's first) and then every CHECK_EVERY updates, and compares what they leave: every
-parameter's change, every optimizer state, the values the script logs. A disagreement, or an exception, switches
-the fast path off for the rest of the run with one warning line, and the run continues with `definition`, as
-`--autograd` runs it. A script's edit of its nets, losses or update therefore either changes both paths alike or
-shows at the next check, which comes before the new iteration's second update.
+iteration's first, a resumed run's first) and then every CHECK_EVERY updates, and compares what they leave: the
+optimizers' moments (the gradients), every parameter's change, the values the script logs. `act(explore, ...)`
+compares the two actings likewise (CHECK_ROWS draws for the current observation) at each new net and every
+CHECK_EVERY steps. A disagreement, or an exception, switches that path off for the rest of the run with one warning
+line, and the run continues with the script's own function, as `--autograd` runs it. A script's edit of its nets,
+losses, update or acting therefore either changes both paths alike or shows at the next check, which comes
+before the new iteration's third update.
 """
 
 from __future__ import annotations
@@ -46,6 +49,8 @@ CHECK_EVERY = 1000
 # method changes some number by far more (a loss term, a bound, a target step: 1e-3 and up).
 TOLERANCE = 1e-8
 STEP_TOLERANCE = 1e-4
+# an acting check draws this many actions for the current observation (repeated), so that an edit of the noise shows
+CHECK_ROWS = 64
 # a change, state or value is compared relative to at least this fraction of the largest of its kind: a parameter
 # whose gradient cancels to ~0 (a bias summed over the batch) has only rounding to compare
 FLOOR = 1e-3
@@ -250,6 +255,49 @@ def lerp_targets(target: nn.Module, source: nn.Module, tau: float) -> None:
 
 
 # ----------------------------------------------------------------------------------------------
+# Acting in the training env: one observation through all nets, in numpy on views of the live weights
+# ----------------------------------------------------------------------------------------------
+class NumpyActor:
+    """Views (no copies: the optimizer's in-place steps show at once) of a script's CascadeActor's weights, and its
+    forward in numpy: per call ~20 numpy operations of a few microseconds, where torch's cost ~10 us each."""
+
+    def __init__(self, head: tuple[str, str]):
+        self.head = head
+        self.cached: tuple = ()  # (actor, its hidden-layer tuple, its heads tuple, the views)
+
+    def views(self, actor: nn.Module) -> tuple:
+        # the script's actor rebuilds its `_hidden`/`_heads` tuples whenever it replaces a Parameter (a new net)
+        cached = self.cached
+        if not cached or cached[0] is not actor or cached[1] is not actor._hidden or cached[2] is not actor._heads:
+            hidden = [(w.detach().numpy(), b.detach().numpy()) for w, b in zip(members(actor.hidden_weights),
+                                                                             members(actor.hidden_biases))]
+            head = [getattr(actor, name).detach().numpy() for name in self.head]
+            fallback = (actor.fallback_weight.detach().numpy(), actor.fallback_bias.detach().numpy())
+            self.cached = cached = (actor, actor._hidden, actor._heads, (hidden, head, fallback,
+                                                                         activation_name(actor)))
+        return cached[3]
+
+    def forward(self, actor: nn.Module, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each net's output [n, B, D] and its contribution w_i [n, B, 1] for obs [B, obs_dim]."""
+        hidden, (head_weight, head_bias), (fallback_weight, fallback_bias), activation = self.views(actor)
+        h = obs
+        for weight, bias in hidden:
+            h = np.matmul(h, weight)
+            h += bias
+            if activation == "tanh":
+                np.tanh(h, out=h)
+            else:
+                np.maximum(h, 0, out=h)
+        out = np.matmul(h, head_weight)
+        out += head_bias
+        fallback = 1.0 / (1.0 + np.exp(-(np.matmul(h[1:], fallback_weight) + fallback_bias)))
+        ones = np.ones((1, *fallback.shape[1:]), fallback.dtype)  # (fallback has no rows at n = 1)
+        later = np.cumprod(np.concatenate([fallback, ones])[::-1], axis=0)[::-1]
+        contribution = np.concatenate([ones, 1.0 - fallback]) * later
+        return out, contribution
+
+
+# ----------------------------------------------------------------------------------------------
 # SAC (cascade_sac.py's sac_update)
 # ----------------------------------------------------------------------------------------------
 class SACFast:
@@ -257,6 +305,17 @@ class SACFast:
 
     def __init__(self, log_std_bounds: tuple[float, float]):
         self.log_std_min, self.log_std_max = log_std_bounds
+        self.numpy_actor = NumpyActor(("head_weight", "head_bias"))
+
+    def explore(self, actor: nn.Module, obs: np.ndarray) -> np.ndarray:
+        """`explore`'s action (a sample of the squashed Gaussian) in numpy, drawing the same torch noise."""
+        out, contribution = self.numpy_actor.forward(actor, obs.astype(actor.action_scale.numpy().dtype))
+        combined = (contribution * out).sum(0)
+        a = actor.act_dim
+        log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (np.tanh(combined[:, a:]) + 1)
+        noise = torch.randn(combined[:, :a].shape).numpy().astype(combined.dtype)  # squashed_sample's draw
+        y = np.tanh(combined[:, :a] + np.exp(log_std) * noise)
+        return y * actor.action_scale.numpy() + actor.action_bias.numpy()
 
     def sample(self, actor: nn.Module, obs: torch.Tensor) -> dict:
         """The actor's squashed Gaussian sample on obs, with what its backward pass needs."""
@@ -333,8 +392,23 @@ class SACFast:
 class DDPGFast:
     """`ddpg_update` with hand-written gradients."""
 
+    def __init__(self):
+        self.numpy_actor = NumpyActor(("mu_weight", "mu_bias"))
+
+    def explore(self, actor: nn.Module, obs: np.ndarray, noise: float) -> np.ndarray:
+        """`explore`'s action (the cascade's, plus clipped Gaussian noise) in numpy, drawing the same torch noise."""
+        scale, bias = actor.action_scale.numpy(), actor.action_bias.numpy()
+        out, contribution = self.numpy_actor.forward(actor, obs.astype(scale.dtype))
+        if actor.combine_before_tanh:
+            action = np.tanh((contribution * out).sum(0)) * scale + bias
+        else:
+            action = (contribution * np.tanh(out)).sum(0) * scale + bias
+        if noise:
+            action = action + torch.randn(action.shape).numpy().astype(action.dtype) * (scale * noise)
+        return np.maximum(np.minimum(action, bias + scale), bias - scale)
+
     @staticmethod
-    def act(actor: nn.Module, obs: torch.Tensor) -> tuple[CascadePass, torch.Tensor, torch.Tensor]:
+    def actor_pass(actor: nn.Module, obs: torch.Tensor) -> tuple[CascadePass, torch.Tensor, torch.Tensor]:
         """The actor's action on obs (and the pass and the squashed value before scaling, for the backward)."""
         cascade = CascadePass(actor, obs, (actor.mu_weight, actor.mu_bias))
         if actor.combine_before_tanh:
@@ -361,13 +435,13 @@ class DDPGFast:
                  target_actor: nn.Module, qf: nn.Module, qf_target: nn.Module, q_optimizer: torch.optim.Optimizer,
                  actor_optimizer: torch.optim.Optimizer) -> dict:
         b_obs, b_actions, b_rewards, b_next_obs, b_dones = batch
-        _, _, next_actions = self.act(target_actor, b_next_obs)
+        _, _, next_actions = self.actor_pass(target_actor, b_next_obs)
         next_q_value = b_rewards + (1 - b_dones) * args.gamma * critic_values(qf_target, b_next_obs, next_actions)[0]
         qf_a_values, losses = critic_step(qf, q_optimizer, b_obs, b_actions, next_q_value)
         out = {"qf1_a_values": qf_a_values[0], "qf1_loss": losses[0]}
 
         if step_in_iteration % args.policy_frequency == 0:
-            cascade, squashed, action = self.act(actor, b_obs)
+            cascade, squashed, action = self.actor_pass(actor, b_obs)
             q, grad_action = critic_input_grad(qf, b_obs, action, lambda q: torch.full_like(q, -1.0 / len(b_obs)))
             out["actor_loss"] = -q[0].mean()
             apply_gradients(actor_optimizer, self.actor_grads(actor, cascade, squashed, grad_action))
@@ -464,15 +538,67 @@ class OffPolicyFastPath:
     """Runs an update through the fast path or, when off, the script's `definition`, checking the fast path
     against it (module docstring). `announce(message, step)` gets the one-line warning when it switches off."""
 
-    def __init__(self, enabled: bool, fast_update: Callable[..., dict],
-                 announce: Callable[[str, int], None] | None = None, span: int = 2):
-        self.on, self.fast_update, self.announce, self.span = enabled, fast_update, announce, span
+    def __init__(self, enabled: bool, fast: SACFast | DDPGFast, announce: Callable[[str, int], None] | None = None,
+                 span: int = 2):
+        self.on = self.acting = enabled  # the update's fast path; acting's
+        self.fast_update, self.fast_explore = fast, fast.explore
+        self.announce, self.span = announce, span
         self.optimizers: tuple = ()  # the optimizers of the latest update: new ones start a new iteration
         self.updates = 0  # updates since then
-        self.checks = 0  # checks passed
+        self.acting_key: tuple = ()  # (actor, its size) at the latest acting check
+        self.acts = 0  # acting steps since then
+        self.checks = 0  # checks passed (updates and acting)
         self.worst = 0.0  # the largest difference a passed check saw (relative; a step's scaled by TOLERANCE/STEP_TOLERANCE)
         self.check_seconds = 0.0
         self.messages: list[str] = []
+
+    def act(self, definition: Callable[..., torch.Tensor], actor: nn.Module, obs: np.ndarray, *extra: Any,
+            step: int = 0) -> np.ndarray:
+        """`definition(actor, obs, *extra)` as numpy actions, by the numpy path when it is on (checked first at a new
+        net, a new actor, and every CHECK_EVERY steps)."""
+        if self.acting:
+            key = self.acting_key
+            if not key or key[0] is not actor or key[1] != actor.size or self.acts % CHECK_EVERY == 0:
+                self.acting_key, self.acts = (actor, actor.size), 0
+                try:
+                    what = self.check_acting(definition, actor, obs, extra)
+                except Exception as exc:
+                    what = f"the numpy acting path fails on this actor ({describe(exc)})"
+                if what is not None:
+                    self.switch_off(what, step, acting=True)
+            if self.acting:
+                self.acts += 1
+                return self.fast_explore(actor, obs, *extra)
+        with torch.inference_mode():  # acting: no autograd bookkeeping at all
+            observations = torch.as_tensor(obs, dtype=torch.float32, device=actor.action_scale.device)
+            return definition(actor, observations, *extra).cpu().numpy()
+
+    def check_acting(self, definition: Callable[..., torch.Tensor], actor: nn.Module, obs: np.ndarray,
+                     extra: tuple) -> str | None:
+        """`definition` and the numpy path on a float64 copy of the actor, CHECK_ROWS draws for obs, from the same
+        random state; what differs."""
+        start = time.perf_counter()
+        state, dtype = torch.get_rng_state(), torch.get_default_dtype()
+        torch.set_default_dtype(torch.float64)
+        try:
+            twin = copy.deepcopy(actor).double()
+            rows = np.repeat(obs, CHECK_ROWS, axis=0).astype(np.float64)
+            with torch.inference_mode():
+                reference = definition(twin, torch.as_tensor(rows), *extra).detach().numpy()
+            torch.set_rng_state(state)
+            fast = self.fast_explore(twin, rows, *extra)
+            if fast.shape != reference.shape:
+                return f"the numpy acting path gives actions of shape {fast.shape}, explore {reference.shape}"
+            error = float(np.abs(fast - reference).max() / max(np.abs(reference).max(), 1e-30))
+            if not error <= TOLERANCE:
+                return f"the numpy acting path's actions differ from explore's (max relative error {error:.1e})"
+            self.checks += 1
+            self.worst = max(self.worst, error)
+            return None
+        finally:
+            torch.set_rng_state(state)
+            torch.set_default_dtype(dtype)
+            self.check_seconds += time.perf_counter() - start
 
     def update(self, definition: Callable[..., dict], *arguments: Any, step: int = 0) -> dict:
         """`definition(*arguments)`, by the fast path when it is on (checked first when a check is due)."""
@@ -521,11 +647,15 @@ class OffPolicyFastPath:
             torch.set_default_dtype(dtype)
             self.check_seconds += time.perf_counter() - start
 
-    def switch_off(self, what: str, step: int) -> None:
-        self.on = False
-        message = (f"fast update check at global_step={step}: {what}; continuing with the script's own update (as "
-                   "--autograd). If the update was edited on purpose, this is expected; edit "
-                   "cascade_plumbing/fast_offpolicy.py to match it to get the speed back")
+    def switch_off(self, what: str, step: int, acting: bool = False) -> None:
+        if acting:
+            self.acting = False
+        else:
+            self.on = False
+        path, definition = ("fast acting", "explore") if acting else ("fast update", "the script's own update")
+        message = (f"{path} check at global_step={step}: {what}; continuing with {definition} (as --autograd). If "
+                   "the script was edited on purpose, this is expected; edit cascade_plumbing/fast_offpolicy.py to "
+                   "match it to get the speed back")
         self.messages.append(message)
         if self.announce is not None:
             self.announce(message, step)

@@ -162,6 +162,18 @@ class ShiftedActor(cs.CascadeActor):
         return mean + 0.01, log_std, fallback, contribution
 
 
+class OffsetActor(cs.CascadeActor):
+    """An edit that adds a parameter: a learned offset of the mean."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.offset = torch.nn.Parameter(torch.full((ACT_DIM,), 0.1))
+
+    def forward(self, obs):
+        mean, log_std, fallback, contribution = super().forward(obs)
+        return mean + self.offset, log_std, fallback, contribution
+
+
 def edited(script, edit, state, monkeypatch):
     """The script's update with `edit` made; the state is changed where the edit is of the net."""
     if edit == "critic loss":
@@ -174,17 +186,17 @@ def edited(script, edit, state, monkeypatch):
                             original(target, source, tau / 2))
     elif edit == "log-std bound":  # [-6, 2] instead of [-5, 2]
         monkeypatch.setattr(cs, "bounded_log_std", lambda raw: -6.0 + 4.0 * (torch.tanh(raw) + 1))
-    elif edit == "net":
-        actor = ShiftedActor(OBS_DIM, ACT_DIM, 32, 2, 0.5, LOW, HIGH)
+    elif edit in ("net", "new parameter"):
+        actor = (ShiftedActor if edit == "net" else OffsetActor)(OBS_DIM, ACT_DIM, 32, 2, 0.5, LOW, HIGH)
         for _ in range(state["actor"].size):
             actor.add_base_net()
-        actor.load_state_dict(state["actor"].state_dict())
+        actor.load_state_dict(state["actor"].state_dict(), strict=False)
         state["actor"], state["actor_optimizer"] = actor, cs.make_adam(list(actor.parameters()), 3e-4)
     return cs.sac_update if script is cs else cd.ddpg_update
 
 
 @pytest.mark.parametrize("script,edit", [(cs, e) for e in ("critic loss", "contributions", "soft update",
-                                                             "log-std bound", "net")]
+                                                             "log-std bound", "net", "new parameter")]
                          + [(cd, e) for e in ("critic loss", "contributions", "soft update")])
 def test_check_catches_an_edit_of_the_script(script, edit, monkeypatch):
     """An edit of the script's update or nets switches the fast path off at its first checks, with one message, and
@@ -198,7 +210,8 @@ def test_check_catches_an_edit_of_the_script(script, edit, monkeypatch):
     for step in range(3):
         out = path.update(definition, *arguments(state, step, step), step=step)
         state["alpha"] = out.get("alpha", 0.0)
-    assert not path.on and len(messages) == 1 and "differs" in messages[0], messages
+    expected = "fails on these nets" if edit == "new parameter" else "differs"
+    assert not path.on and len(messages) == 1 and expected in messages[0], messages
 
 
 def test_check_catches_a_wrong_fast_path(monkeypatch):
@@ -258,7 +271,99 @@ def test_a_run_keeps_the_fast_path_on_and_autograd_turns_it_off(script, tmp_path
                   track_dir=str(tmp_path))
     result = script.train(script.Args(**common))
     fast = result["fast_path"]
-    assert fast.on and not fast.messages
-    assert fast.checks == 2 * 2  # two iterations, the span of two updates at each start
+    assert fast.on and fast.acting and not fast.messages
+    assert fast.checks == 2 * (2 + 1)  # two iterations: the span of two updates and the acting at each start
     result = script.train(script.Args(**common, autograd=True))
-    assert not result["fast_path"].on and result["fast_path"].checks == 0
+    fast = result["fast_path"]
+    assert not fast.on and not fast.acting and fast.checks == 0
+
+
+# ----------------------------------------------------------------------------------------------
+# Acting: the numpy path against the script's `explore`
+# ----------------------------------------------------------------------------------------------
+ACTING_CASES = [("sac", n, None, None, None) for n in (1, 3)] + [
+    ("ddpg", n, before, act, noise) for n in (1, 4) for before in (True, False) for act in ("tanh", "relu")
+    for noise in (0.0, 0.1)]
+
+
+def acting_setup(case):
+    kind, n, before, activation, noise = case
+    if kind == "sac":
+        state = sac_setup(n, False)
+        return state["actor"], cs.explore, fo.SACFast((cs.LOG_STD_MIN, cs.LOG_STD_MAX)), ()
+    state = ddpg_setup(n, before, activation)
+    return state["actor"], cd.explore, fo.DDPGFast(), (noise,)
+
+
+@pytest.mark.parametrize("case", ACTING_CASES, ids=str)
+def test_numpy_acting_equals_explore(case):
+    """float64: the same actions to rounding (CHECK_ROWS draws); float32: the same actions to float32 rounding."""
+    actor, explore, fast, extra = acting_setup(case)
+    path = fo.OffPolicyFastPath(True, fast)
+    obs = np.random.default_rng(0).normal(size=(1, OBS_DIM)).astype(np.float32) * 2
+    assert path.check_acting(explore, actor, obs, extra) is None
+    assert path.worst < 1e-12, path.worst
+    torch.manual_seed(3)
+    with torch.inference_mode():
+        reference = explore(actor, torch.as_tensor(obs), *extra).numpy()
+    torch.manual_seed(3)
+    np.testing.assert_allclose(fast.explore(actor, obs, *extra), reference, rtol=1e-5, atol=1e-6)
+
+
+def explore_doubled_noise(actor, obs, noise):
+    return cd.explore(actor, obs, 2 * noise)
+
+
+def explore_mean_action(actor, obs):
+    return actor.get_action(obs)[2]
+
+
+@pytest.mark.parametrize("script", ["sac", "ddpg"])
+def test_check_catches_an_edit_of_explore(script):
+    """An edited `explore` switches the numpy acting off at the first step, with one message; the run acts with
+    the edit (the update's fast path stays on)."""
+    if script == "sac":
+        actor, _, fast, extra = acting_setup(("sac", 2, None, None, None))
+        edited_explore = explore_mean_action
+    else:
+        actor, _, fast, extra = acting_setup(("ddpg", 2, True, "tanh", 0.1))
+        edited_explore = explore_doubled_noise
+    messages = []
+    path = fo.OffPolicyFastPath(True, fast, announce=lambda message, step: messages.append(message))
+    obs = np.ones((1, OBS_DIM), np.float32)
+    torch.manual_seed(4)
+    action = path.act(edited_explore, actor, obs, *extra, step=7)
+    torch.manual_seed(4)
+    with torch.inference_mode():
+        expected = edited_explore(actor, torch.as_tensor(obs), *extra).numpy()
+    assert not path.acting and path.on and len(messages) == 1
+    assert messages[0].startswith("fast acting check at global_step=7") and "differ" in messages[0]
+    np.testing.assert_array_equal(action, expected)
+
+
+def test_acting_checks_at_each_new_net_and_every_check_every_steps(monkeypatch):
+    monkeypatch.setattr(fo, "CHECK_EVERY", 4)
+    actor, explore, fast, extra = acting_setup(("ddpg", 1, True, "tanh", 0.1))
+    path = fo.OffPolicyFastPath(True, fast)
+    obs = np.ones((1, OBS_DIM), np.float32)
+    for _ in range(9):
+        path.act(explore, actor, obs, *extra)
+    assert path.checks == 3  # steps 0, 4, 8
+    actor.add_base_net()
+    path.act(explore, actor, obs, *extra)
+    assert path.checks == 4 and path.acting
+
+
+def test_an_acting_check_leaves_the_random_stream_and_the_actions_as_without_it():
+    actions, states = [], []
+    for checked in (True, False):
+        actor, explore, fast, extra = acting_setup(("sac", 3, None, None, None))
+        path = fo.OffPolicyFastPath(True, fast)
+        if not checked:
+            path.acting_key, path.acts = (actor, actor.size), 1  # no check is due
+        torch.manual_seed(9)
+        actions.append(path.act(explore, actor, np.ones((1, OBS_DIM), np.float32)))
+        states.append(torch.get_rng_state())
+        assert path.checks == int(checked)
+    np.testing.assert_array_equal(*actions)
+    assert torch.equal(*states)
