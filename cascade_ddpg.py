@@ -62,7 +62,7 @@ class Args:
     torch_deterministic: bool = True
     """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
-    """CPU threads of torch and of numpy's BLAS; 1: these nets are too small for a second thread to pay (README, speed of SAC and DDPG)"""
+    """torch CPU threads (numpy's BLAS: one); 1: these nets are too small for a second thread to pay (README, speed of SAC and DDPG)"""
     autograd: bool = False
     """act with `explore` and update with `ddpg_update` (autograd) only, no fast paths (slower; the same results up to float rounding)"""
     cuda: bool = False
@@ -394,7 +394,7 @@ def train(args: Args, checkpoint: dict | None = None,
     # plus the paper's code's clipping of raw observations and rewards to +-obs_reward_clip (0: none)
     envs = make_vector_env([make_env(args.env_id, video=args.capture_video, clip=args.obs_reward_clip)])
     run = OffPolicyRun(args, checkpoint, envs, CHECKPOINT_FORMAT, rates="--learning-rate")
-    fast = make_fast_path(args, device, run)  # the fast path, checked against ddpg_update while the run trains
+    fast = make_fast_paths(args, device, run)  # the fast paths, checked against explore and ddpg_update as the run trains
     obs_dim, act_dim = run.obs_dim, run.act_dim
 
     actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init,
@@ -539,11 +539,11 @@ def member_policy(actor: CascadeActor, net: int, noise: float) -> Policy:
 # ----------------------------------------------------------------------------------------------
 # Fast paths: the same update with hand-written gradients, and the same acting in numpy
 # (cascade_plumbing/fast_offpolicy.py; README "SAC and DDPG"), checked against `ddpg_update` and `explore` while the
-# run trains: at each new net, then every 1000 steps, both run on float64 copies from the same random state. Edit
+# run trains: at each new net, then every 2000 steps, both run on float64 copies from the same random state. Edit
 # `ddpg_update`, `explore` and the nets above, not the fast paths: an edit they do not reproduce switches them off
 # with one warning line, and the run continues exactly as --autograd runs it. On the CPU only.
 # ----------------------------------------------------------------------------------------------
-def make_fast_path(args: Args, device: torch.device, run: OffPolicyRun | None = None) -> OffPolicyFastPath:
+def make_fast_paths(args: Args, device: torch.device, run: OffPolicyRun | None = None) -> OffPolicyFastPath:
     # each check spans enough consecutive updates to include the actor and the targets
     return OffPolicyFastPath(not args.autograd and device.type == "cpu", DDPGFast(),
                              None if run is None else run.fast_path_off, span=args.policy_frequency)

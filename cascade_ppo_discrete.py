@@ -67,7 +67,7 @@ class Args:
     torch_deterministic: bool = True
     """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
-    """CPU threads of torch and of numpy's BLAS; 1 is fastest for these small nets"""
+    """torch CPU threads (numpy's BLAS: one); 1 is fastest for these small nets"""
     cuda: bool = False
     """train on the GPU if torch sees one (small nets are usually faster on the CPU); --evaluate runs on the CPU"""
     track_dir: str = "runs"

@@ -58,7 +58,7 @@ class Args:
     torch_deterministic: bool = True
     """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
-    """CPU threads of torch and of numpy's BLAS; 1: a second one sped the 256-wide SAC baseline up by only ~1.15x in wall-clock for ~1.5x the CPU time (README, speed of SAC and DDPG), so two runs side by side finish sooner than one run on two threads"""
+    """torch CPU threads (numpy's BLAS: one); 1: a second made the SAC baseline slower, not faster (README, speed of SAC and DDPG): run one run per core"""
     autograd: bool = False
     """act with `explore` and update with `sac_update` (autograd) only, no fast paths (slower; the same results up to float rounding)"""
     cuda: bool = False
@@ -419,7 +419,7 @@ def train(args: Args, checkpoint: dict | None = None,
     # bounds), plus the paper's code's clipping of raw observations and rewards to +-obs_reward_clip (0: none)
     envs = make_vector_env([make_env(args.env_id, video=args.capture_video, clip=args.obs_reward_clip)])
     run = OffPolicyRun(args, checkpoint, envs, CHECKPOINT_FORMAT, rates="--policy-lr / --q-lr")
-    fast = make_fast_path(args, device, run)  # the fast path, checked against sac_update while the run trains
+    fast = make_fast_paths(args, device, run)  # the fast paths, checked against explore and sac_update as the run trains
     obs_dim, act_dim = run.obs_dim, run.act_dim
 
     actor = CascadeActor(obs_dim, act_dim, args.hidden_size, args.num_layers, args.fallback_init,
@@ -566,14 +566,15 @@ def member_policy(actor: CascadeActor, net: int, deterministic: bool) -> Policy:
 # ----------------------------------------------------------------------------------------------
 # Fast paths: the same update with hand-written gradients, and the same acting in numpy
 # (cascade_plumbing/fast_offpolicy.py; README "SAC and DDPG"), checked against `sac_update` and `explore` while the
-# run trains: at each new net, then every 1000 steps, both run on float64 copies from the same random state. Edit
+# run trains: at each new net, then every 2000 steps, both run on float64 copies from the same random state. Edit
 # `sac_update`, `explore` and the nets above, not the fast paths: an edit they do not reproduce switches them off
 # with one warning line, and the run continues exactly as --autograd runs it. On the CPU only.
 # ----------------------------------------------------------------------------------------------
-def make_fast_path(args: Args, device: torch.device, run: OffPolicyRun | None = None) -> OffPolicyFastPath:
+def make_fast_paths(args: Args, device: torch.device, run: OffPolicyRun | None = None) -> OffPolicyFastPath:
     # each check spans enough consecutive updates to include the actor, the temperature and the targets
+    span = max(args.policy_frequency, args.target_network_frequency)
     return OffPolicyFastPath(not args.autograd and device.type == "cpu", SACFast((LOG_STD_MIN, LOG_STD_MAX)),
-                             None if run is None else run.fast_path_off, span=max(args.policy_frequency, args.target_network_frequency))
+                             None if run is None else run.fast_path_off, span=span)
 
 
 # ----------------------------------------------------------------------------------------------

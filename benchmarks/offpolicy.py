@@ -291,8 +291,8 @@ def run_worker(config: str, a: Args) -> dict:
             raise Stop
         return out
 
-    if hasattr(script, "make_fast_path"):  # the update goes through the fast path's update(definition, ...)
-        make_fast_path = script.make_fast_path
+    if hasattr(script, "make_fast_paths"):  # the update goes through the fast path's update(definition, ...)
+        make_fast_paths = script.make_fast_paths
 
         class Measured:
             def __init__(self, fast):
@@ -301,11 +301,14 @@ def run_worker(config: str, a: Args) -> dict:
             def update(self, definition, *update_args, step=0):
                 return measured_update(*update_args, through=lambda *u: self.fast.update(definition, *u, step=step))
 
+            def act(self, *act_args, **kwargs):
+                return self.fast.act(*act_args, **kwargs)
+
         def measured_fast_path(*make_args):
-            state["fast"] = make_fast_path(*make_args)
+            state["fast"] = make_fast_paths(*make_args)
             return Measured(state["fast"])
 
-        script.make_fast_path = measured_fast_path
+        script.make_fast_paths = measured_fast_path
     else:  # an older tree (--ref): the loop calls the update function by its name
         setattr(script, update_name, measured_update)
     try:

@@ -42,10 +42,11 @@ def check_track_dir(track_dir: str) -> None:
 
 
 def set_threads(threads: int) -> None:
-    """`threads` CPU threads for torch and for numpy's BLAS alike: numpy's OpenBLAS otherwise takes every core
-    for a 256-wide product (the SAC fast path's, the numpy acting paths'), so one run would use two cores."""
+    """`threads` CPU threads for torch; one for numpy's BLAS. numpy's OpenBLAS would otherwise take every core for a
+    256-wide product (the SAC fast path's), so one run would use two cores; and with torch's OpenMP threads beside
+    its own, both spinning between calls, a 2-thread SAC run measured 15x slower (README, "SAC and DDPG")."""
     torch.set_num_threads(threads)
-    threadpool_limits(limits=threads, user_api="blas")
+    threadpool_limits(limits=1, user_api="blas")
 
 
 def seed_everything(seed: int, torch_deterministic: bool) -> None:

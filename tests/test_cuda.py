@@ -135,6 +135,16 @@ TINY = {  # one update each
 }
 
 
+@needs_gpu
+@pytest.mark.parametrize("name", ["cascade_sac", "cascade_ddpg"])
+def test_an_off_policy_gpu_run_trains_without_the_fast_paths(name, tmp_path):
+    """The off-policy fast paths (numpy on the weights) are CPU-only too: a --cuda run updates and acts through the
+    scripts' own functions."""
+    module = importlib.import_module(name)
+    result = module.train(module.Args(cuda=True, quiet=True, track_dir=str(tmp_path), eval_every=0, **TINY[name]))
+    assert not result["fast_path"].on and not result["fast_path"].acting
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine where torch sees no GPU")
 @pytest.mark.parametrize("name", list(TINY))
 def test_cuda_without_a_gpu_says_so_and_runs_on_the_cpu(name, tmp_path, capsys):
