@@ -539,14 +539,16 @@ def member_policy(actor: CascadeActor, net: int, noise: float) -> Policy:
 # ----------------------------------------------------------------------------------------------
 # Fast paths: the same update with hand-written gradients, and the same acting in numpy
 # (cascade_plumbing/fast_offpolicy.py; README "SAC and DDPG"), checked against `ddpg_update` and `explore` while the
-# run trains: at each new net, then every 2000 steps, both run on float64 copies from the same random state. Edit
+# run trains: at each new net, then about every 2000 steps, both run on float64 copies from the same random state. Edit
 # `ddpg_update`, `explore` and the nets above, not the fast paths: an edit they do not reproduce switches them off
 # with one warning line, and the run continues exactly as --autograd runs it. On the CPU only.
 # ----------------------------------------------------------------------------------------------
 def make_fast_paths(args: Args, device: torch.device, run: OffPolicyRun | None = None) -> OffPolicyFastPath:
-    # each check spans enough consecutive updates to include the actor and the targets
+    def complete(step_in_iteration: int) -> bool:  # ddpg_update runs every part: the checks pick such updates
+        return step_in_iteration % args.policy_frequency == 0
+
     return OffPolicyFastPath(not args.autograd and device.type == "cpu", DDPGFast(),
-                             None if run is None else run.fast_path_off, span=args.policy_frequency)
+                             None if run is None else run.fast_path_off, complete)
 
 
 # ----------------------------------------------------------------------------------------------

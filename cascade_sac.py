@@ -566,15 +566,16 @@ def member_policy(actor: CascadeActor, net: int, deterministic: bool) -> Policy:
 # ----------------------------------------------------------------------------------------------
 # Fast paths: the same update with hand-written gradients, and the same acting in numpy
 # (cascade_plumbing/fast_offpolicy.py; README "SAC and DDPG"), checked against `sac_update` and `explore` while the
-# run trains: at each new net, then every 2000 steps, both run on float64 copies from the same random state. Edit
+# run trains: at each new net, then about every 2000 steps, both run on float64 copies from the same random state. Edit
 # `sac_update`, `explore` and the nets above, not the fast paths: an edit they do not reproduce switches them off
 # with one warning line, and the run continues exactly as --autograd runs it. On the CPU only.
 # ----------------------------------------------------------------------------------------------
 def make_fast_paths(args: Args, device: torch.device, run: OffPolicyRun | None = None) -> OffPolicyFastPath:
-    # each check spans enough consecutive updates to include the actor, the temperature and the targets
-    span = max(args.policy_frequency, args.target_network_frequency)
+    def complete(step_in_iteration: int) -> bool:  # sac_update runs every part: the checks pick such updates
+        return step_in_iteration % args.policy_frequency == 0 and step_in_iteration % args.target_network_frequency == 0
+
     return OffPolicyFastPath(not args.autograd and device.type == "cpu", SACFast((LOG_STD_MIN, LOG_STD_MAX)),
-                             None if run is None else run.fast_path_off, span=span)
+                             None if run is None else run.fast_path_off, complete)
 
 
 # ----------------------------------------------------------------------------------------------

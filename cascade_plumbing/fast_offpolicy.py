@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import math
+import random
 import time
 from collections.abc import Callable
 from typing import Any
@@ -38,10 +39,10 @@ import torch.nn as nn
 from .fast import describe
 from .offpolicy import step_with_gradients
 
-# A check covers the first `span` updates (the actor's, the temperature's and the targets' come every 2nd
-# update by default) of each new actor optimizer, then `span` updates every CHECK_EVERY, and acting at each new net
-# and every CHECK_EVERY steps. A check costs about six float64 updates (DDPG: ~9 ms, SAC 256-wide: ~36 ms): ~0.5-1% of
-# a run at this spacing.
+# A check covers the first update with each new set of optimizers and the first complete one after it (one that
+# also updates the actor, the temperature and the targets: every 2nd by default), then one complete update about
+# every CHECK_EVERY (at random phases); acting at each new net and about every CHECK_EVERY steps. A check costs about
+# six float64 updates (DDPG: ~9 ms, SAC 256-wide: ~36 ms): ~0.5% of a run at this spacing.
 CHECK_EVERY = 2000
 # Relative differences above which the two updates disagree. The gradients (in Adam's moments), the losses and
 # values agree to ~1e-11 in float64: more than 1e-16, as log(1 - y^2) and tanh's 1 - y^2 near |y| = 1 amplify the
@@ -269,13 +270,16 @@ class NumpyActor:
     def views(self, actor: nn.Module) -> tuple:
         # the script's actor rebuilds its `_hidden`/`_heads` tuples whenever it replaces a Parameter (a new net)
         cached = self.cached
-        if not cached or cached[0] is not actor or cached[1] is not actor._hidden or cached[2] is not actor._heads:
+        if (not cached or cached[0] is not actor or cached[1] is not actor._hidden or cached[2] is not actor._heads
+                or any(p.data_ptr() != pointer for p, pointer in cached[4])):  # (`p.data = ...` swaps the memory)
             hidden = [(w.detach().numpy(), b.detach().numpy()) for w, b in zip(members(actor.hidden_weights),
                                                                              members(actor.hidden_biases))]
             head = [getattr(actor, name).detach().numpy() for name in self.head]
             fallback = (actor.fallback_weight.detach().numpy(), actor.fallback_bias.detach().numpy())
-            self.cached = cached = (actor, actor._hidden, actor._heads, (hidden, head, fallback,
-                                                                         activation_name(actor)))
+            params = [*members(actor.hidden_weights), *members(actor.hidden_biases), actor.fallback_weight,
+                      actor.fallback_bias, *(getattr(actor, name) for name in self.head)]
+            self.cached = cached = (actor, actor._hidden, actor._heads, (hidden, head, fallback, activation_name(actor)),
+                                    [(p, p.data_ptr()) for p in params])
         return cached[3]
 
     def forward(self, actor: nn.Module, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -461,7 +465,8 @@ def float64_twins(arguments: tuple) -> tuple:
 
     def tensor(t: torch.Tensor) -> torch.Tensor:
         if id(t) not in twin_of:
-            twin = t.detach().double() if t.is_floating_point() else t.detach().clone()
+            # a copy even of a float64 tensor (.double() would return the tensor itself, and the check step it)
+            twin = t.detach().to(torch.float64, copy=True) if t.is_floating_point() else t.detach().clone()
             twin_of[id(t)] = twin.requires_grad_(t.requires_grad)
         return twin_of[id(t)]
 
@@ -540,18 +545,29 @@ class OffPolicyFastPath:
     against it (module docstring). `announce(message, step)` gets the one-line warning when it switches off."""
 
     def __init__(self, enabled: bool, fast: SACFast | DDPGFast, announce: Callable[[str, int], None] | None = None,
-                 span: int = 2):
+                 complete: Callable[[int], bool] = lambda step_in_iteration: True):
+        """`complete(step_in_iteration)`: does the update of that step run every part (critics, actor, temperature,
+        targets)? Each check after an iteration's first update waits for such an update."""
         self.on = self.acting = enabled  # the update's fast path; acting's
         self.fast_update, self.fast_explore = fast, fast.explore
-        self.announce, self.span = announce, span
+        self.announce, self.complete = announce, complete
         self.optimizers: tuple = ()  # the optimizers of the latest update: new ones start a new iteration
         self.updates = 0  # updates since then
+        self.next_check = 0  # the update count from which the next check is due (then: at the next complete update)
         self.acting_key: tuple = ()  # (actor, its size) at the latest acting check
         self.acts = 0  # acting steps since then
+        self.next_acting_check = 0
+        # the checks' spacing is drawn from their own generator (the run's streams are untouched): a fixed spacing would
+        # check only one phase of an edit that acts every so many steps
+        self.spacing = random.Random(0)
         self.checks = 0  # checks passed (updates and acting)
         self.worst = 0.0  # the largest difference a passed check saw (relative; a step's scaled by TOLERANCE/STEP_TOLERANCE)
         self.check_seconds = 0.0
         self.messages: list[str] = []
+
+    def gap(self) -> int:
+        """Steps to the next periodic check: CHECK_EVERY on average, at a random phase."""
+        return self.spacing.randint(CHECK_EVERY // 2, 3 * CHECK_EVERY // 2)
 
     def act(self, definition: Callable[..., torch.Tensor], actor: nn.Module, obs: np.ndarray, *extra: Any,
             step: int = 0) -> np.ndarray:
@@ -559,8 +575,8 @@ class OffPolicyFastPath:
         net, a new actor, and every CHECK_EVERY steps)."""
         if self.acting:
             key = self.acting_key
-            if not key or key[0] is not actor or key[1] != actor.size or self.acts % CHECK_EVERY == 0:
-                self.acting_key, self.acts = (actor, actor.size), 0
+            if not key or key[0] is not actor or key[1] != actor.size or self.acts >= self.next_acting_check:
+                self.acting_key, self.acts, self.next_acting_check = (actor, actor.size), 0, self.gap()
                 try:
                     what = self.check_acting(definition, actor, obs, extra)
                 except Exception as exc:
@@ -580,6 +596,7 @@ class OffPolicyFastPath:
         random state; what differs."""
         start = time.perf_counter()
         state, dtype = torch.get_rng_state(), torch.get_default_dtype()
+        others = np.random.get_state(), random.getstate()  # an edit may draw from numpy's or Python's stream
         torch.set_default_dtype(torch.float64)
         try:
             twin = copy.deepcopy(actor).double()
@@ -598,6 +615,8 @@ class OffPolicyFastPath:
             return None
         finally:
             torch.set_rng_state(state)
+            np.random.set_state(others[0])
+            random.setstate(others[1])
             torch.set_default_dtype(dtype)
             self.check_seconds += time.perf_counter() - start
 
@@ -607,8 +626,14 @@ class OffPolicyFastPath:
             return definition(*arguments)
         optimizers = tuple(a for a in arguments if isinstance(a, torch.optim.Optimizer))
         if len(optimizers) != len(self.optimizers) or any(a is not b for a, b in zip(optimizers, self.optimizers)):
-            self.optimizers, self.updates = optimizers, 0  # a new iteration, or a resumed run: check from its start
-        if self.updates % CHECK_EVERY < self.span:
+            # new optimizers: a new iteration, a resumed run, a reset critic. Check this update, then the first
+            # complete one (the actor's, the temperature's and the targets' updates come every few steps)
+            self.optimizers, self.updates, self.next_check = optimizers, 0, 0
+        first = self.updates == 0
+        due = self.updates >= self.next_check and self.complete(arguments[1])
+        if first or due:
+            if due:
+                self.next_check = self.updates + self.gap()
             try:
                 what = self.check(definition, arguments)
             except Exception as exc:  # an edit the fast path cannot follow (a new layer, another activation...)
@@ -628,6 +653,7 @@ class OffPolicyFastPath:
         if hooked:
             return f"a parameter of shape {hooked[0]} has a gradient hook, which the hand-written update does not apply"
         state, dtype = torch.get_rng_state(), torch.get_default_dtype()
+        others = np.random.get_state(), random.getstate()  # an edit may draw from numpy's or Python's stream
         # float64 noise too (torch.randn of the default dtype), else the script's float32 noise.pow(2) would be
         # float32 rounding inside the float64 comparison
         torch.set_default_dtype(torch.float64)
@@ -635,6 +661,8 @@ class OffPolicyFastPath:
             reference = float64_twins(arguments)
             reference_out = definition(*reference)
             torch.set_rng_state(state)
+            np.random.set_state(others[0])
+            random.setstate(others[1])
             fast = float64_twins(arguments)
             with torch.no_grad():
                 fast_out = self.fast_update(*fast)
@@ -645,6 +673,8 @@ class OffPolicyFastPath:
             return what
         finally:
             torch.set_rng_state(state)  # the run draws as if nothing had been checked
+            np.random.set_state(others[0])
+            random.setstate(others[1])
             torch.set_default_dtype(dtype)
             self.check_seconds += time.perf_counter() - start
 

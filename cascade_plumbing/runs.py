@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 import tyro
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from .checkpoints import CHECKPOINT_NAME, repair_iteration_files
 from .envs import end_env_workers
@@ -42,11 +42,12 @@ def check_track_dir(track_dir: str) -> None:
 
 
 def set_threads(threads: int) -> None:
-    """`threads` CPU threads for torch; one for numpy's BLAS. numpy's OpenBLAS would otherwise take every core for a
-    256-wide product (the SAC fast path's), so one run would use two cores; and with torch's OpenMP threads beside
-    its own, both spinning between calls, a 2-thread SAC run measured 15x slower (README, "SAC and DDPG")."""
+    """`threads` CPU threads for torch; one for numpy's OpenBLAS. It would otherwise take every core for a 256-wide
+    product (the SAC fast path's), so one run would use two cores; and with torch's OpenMP threads beside its own,
+    both spinning between calls, a 2-thread SAC run measured 15x slower (README, "SAC and DDPG"). Only OpenBLAS (what
+    numpy's wheels carry): a BLAS that torch shares (a conda MKL) keeps torch's setting."""
     torch.set_num_threads(threads)
-    threadpool_limits(limits=1, user_api="blas")
+    ThreadpoolController().select(internal_api="openblas").limit(limits=1)
 
 
 def seed_everything(seed: int, torch_deterministic: bool) -> None:

@@ -401,6 +401,10 @@ MUTATIONS += [
         ("DDPG's target actor never moves", "lerp_targets(target_actor, actor, args.tau)", "pass"),
         ("a disagreement never switches the fast path off", "if not error <= tolerance:", "if False:"),
         ("a check draws from the run's random stream", "torch.set_rng_state(state)  # the run draws as if", "pass  #"),
+        ("checks at a fixed phase", "return self.spacing.randint(CHECK_EVERY // 2, 3 * CHECK_EVERY // 2)",
+         "return CHECK_EVERY"),
+        ("numpy acting keeps the views of replaced weights",
+         "or any(p.data_ptr() != pointer for p, pointer in cached[4])):", "or False):"),
     )],
 ]
 

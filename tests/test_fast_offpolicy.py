@@ -10,6 +10,7 @@
 """
 
 import copy
+import random
 import types
 
 import numpy as np
@@ -233,36 +234,109 @@ def test_check_catches_a_wrong_fast_path(monkeypatch):
         assert torch.equal(p, q)
 
 
-def test_a_check_leaves_the_random_stream_and_the_run_as_without_it():
-    """A checked update and an unchecked one leave the same nets and the same torch random state, bit for bit."""
+def test_a_check_leaves_the_random_streams_and_the_run_as_without_it():
+    """A checked update and an unchecked one leave the same nets and the same torch, numpy and Python random
+    states, bit for bit."""
     results = []
-    for check_every in (fo.CHECK_EVERY, 10**9):
+    for checked in (True, False):
         state = sac_setup(2, True)
         torch.manual_seed(5)
+        np.random.seed(5)
+        random.seed(5)
         path = fo.OffPolicyFastPath(True, fo.SACFast((cs.LOG_STD_MIN, cs.LOG_STD_MAX)))
-        if check_every != fo.CHECK_EVERY:
-            path.span = 0  # never due
+        if not checked:  # as if these optimizers had been checked already and no check were due
+            path.optimizers = (state["q_optimizer"], state["actor_optimizer"], state["a_optimizer"])
+            path.updates, path.next_check = 1, 10**9
         for step in range(3):
             out = path.update(cs.sac_update, *sac_arguments(state, step, step), step=step)
             state["alpha"] = out["alpha"]
-        results.append((torch.get_rng_state(), [p.clone() for p in state["actor"].parameters()],
-                        [p.clone() for p in state["qf"].parameters()], path.checks))
-    (rng_a, actor_a, qf_a, checks_a), (rng_b, actor_b, qf_b, checks_b) = results
-    assert checks_a == 2 and checks_b == 0
-    assert torch.equal(rng_a, rng_b)
+        results.append((torch.get_rng_state(), np.random.random(), random.random(),
+                        [p.clone() for p in state["actor"].parameters()], [p.clone() for p in state["qf"].parameters()],
+                        path.checks))
+    (rng_a, np_a, py_a, actor_a, qf_a, checks_a), (rng_b, np_b, py_b, actor_b, qf_b, checks_b) = results
+    assert checks_a == 1 and checks_b == 0  # the first update (also a complete one); the next is ~2000 updates on
+    assert torch.equal(rng_a, rng_b) and np_a == np_b and py_a == py_b
     assert all(torch.equal(p, q) for p, q in zip(actor_a + qf_a, actor_b + qf_b))
 
 
-def test_checks_come_at_each_iteration_start_and_every_check_every_updates(monkeypatch):
-    monkeypatch.setattr(fo, "CHECK_EVERY", 5)
+def test_an_edit_drawing_from_numpy_leaves_the_run_as_autograd_runs_it():
+    """An edited update that draws from numpy's stream is switched off, and the run's numpy stream is where an
+    --autograd run's would be: the check's own draws are undone."""
+    def noisy_update(*arguments):
+        out = cd.ddpg_update(*arguments)
+        out["qf1_loss"] = out["qf1_loss"] + float(np.random.normal(scale=1e-3))
+        return out
+
+    draws = []
+    for fast_on in (True, False):
+        state = ddpg_setup(1, True, "tanh")
+        np.random.seed(11)
+        path = fo.OffPolicyFastPath(fast_on, fo.DDPGFast())
+        path.update(noisy_update, *ddpg_arguments(state, 0, 0), step=0)
+        draws.append(np.random.random())
+        assert not path.on
+    assert draws[0] == draws[1]
+
+
+def test_checks_come_at_each_iteration_start_and_then_at_random_phases(monkeypatch):
+    """The first update with new optimizers and the first complete one after it, then complete updates about every
+    CHECK_EVERY, at varying phases (so that an edit acting every so many steps is met)."""
+    monkeypatch.setattr(fo, "CHECK_EVERY", 10)
     state = ddpg_setup(1, True, "tanh")
-    path = fo.OffPolicyFastPath(True, fo.DDPGFast(), span=2)
-    for step in range(12):
+    path = fo.OffPolicyFastPath(True, fo.DDPGFast(), complete=lambda step: step % 2 == 0)
+    checked = []
+    check = path.check
+    monkeypatch.setattr(path, "check", lambda definition, arguments: checked.append(arguments[1])
+                        or check(definition, arguments))
+    for step in range(1, 201):  # (an iteration's updates start at an odd step by default: learning_starts + 1)
         path.update(cd.ddpg_update, *ddpg_arguments(state, step, step), step=step)
-    assert path.checks == 6  # updates 0, 1, 5, 6, 10, 11
+    assert checked[:2] == [1, 2]  # the first update, then the first complete one
+    assert all(step % 2 == 0 for step in checked[1:])
+    gaps = np.diff(checked[1:])
+    assert 10 <= len(checked) <= 40 and gaps.min() >= 5 and len(set(step % 20 for step in checked[1:])) >= 5
     state["actor_optimizer"] = cd.make_adam(list(state["actor"].parameters()), 3e-4, 1e-5)  # a new iteration
-    path.update(cd.ddpg_update, *ddpg_arguments(state, 0, 0), step=12)
-    assert path.checks == 7 and path.on
+    path.update(cd.ddpg_update, *ddpg_arguments(state, 1, 1), step=201)
+    assert checked[-1] == 1 and path.on
+
+
+def test_an_edit_acting_every_few_steps_is_caught(monkeypatch):
+    """A periodic edit (a hard copy of the targets every 10th step) switches the fast path off within a few checks,
+    however the checks' spacing falls."""
+    monkeypatch.setattr(fo, "CHECK_EVERY", 20)
+
+    def hard_copy_every_10th(args, step_in_iteration, batch, actor, target_actor, qf, qf_target, *optimizers):
+        out = cd.ddpg_update(args, step_in_iteration, batch, actor, target_actor, qf, qf_target, *optimizers)
+        if step_in_iteration % 10 == 0:
+            cd.soft_update(qf_target, qf, 1.0)
+        return out
+
+    state = ddpg_setup(1, True, "tanh")
+    path = fo.OffPolicyFastPath(True, fo.DDPGFast(), complete=lambda step: step % 2 == 0)
+    for step in range(1, 1001):
+        path.update(hard_copy_every_10th, *ddpg_arguments(state, step, step % 7), step=step)
+        if not path.on:
+            break
+    assert not path.on and "differs" in path.messages[0]
+
+
+def test_numpy_acting_follows_weights_whose_memory_is_replaced():
+    """`p.data = ...` (a new tensor for a parameter) is seen at the next step, not only at the next check."""
+    actor, explore, fast, extra = acting_setup(("ddpg", 2, True, "tanh", 0.0))
+    path = fo.OffPolicyFastPath(True, fast)
+    obs = np.ones((1, OBS_DIM), np.float32)
+    path.act(explore, actor, obs, *extra)
+    actor.mu_weight.data = actor.mu_weight.data + 0.5
+    with torch.inference_mode():
+        expected = explore(actor, torch.as_tensor(obs), *extra).numpy()
+    np.testing.assert_allclose(path.act(explore, actor, obs, *extra), expected, rtol=1e-5, atol=1e-6)
+
+
+def test_float64_copies_never_share_memory_with_the_run():
+    log_alpha = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+    module = torch.nn.Linear(2, 2).double()
+    (twin_alpha, twin_module) = fo.float64_twins((log_alpha, module))
+    assert twin_alpha.data_ptr() != log_alpha.data_ptr()
+    assert all(p.data_ptr() != q.data_ptr() for p, q in zip(module.parameters(), twin_module.parameters()))
 
 
 @pytest.mark.parametrize("script", [cs, cd])
@@ -341,17 +415,18 @@ def test_check_catches_an_edit_of_explore(script):
     np.testing.assert_array_equal(action, expected)
 
 
-def test_acting_checks_at_each_new_net_and_every_check_every_steps(monkeypatch):
+def test_acting_checks_at_each_new_net_and_about_every_check_every_steps(monkeypatch):
     monkeypatch.setattr(fo, "CHECK_EVERY", 4)
     actor, explore, fast, extra = acting_setup(("ddpg", 1, True, "tanh", 0.1))
     path = fo.OffPolicyFastPath(True, fast)
     obs = np.ones((1, OBS_DIM), np.float32)
-    for _ in range(9):
+    for _ in range(40):
         path.act(explore, actor, obs, *extra)
-    assert path.checks == 3  # steps 0, 4, 8
+    assert 7 <= path.checks <= 21  # the first step, then every 2 to 6 steps
+    checks = path.checks
     actor.add_base_net()
     path.act(explore, actor, obs, *extra)
-    assert path.checks == 4 and path.acting
+    assert path.checks == checks + 1 and path.acting
 
 
 def test_an_acting_check_leaves_the_random_stream_and_the_actions_as_without_it():
@@ -359,8 +434,8 @@ def test_an_acting_check_leaves_the_random_stream_and_the_actions_as_without_it(
     for checked in (True, False):
         actor, explore, fast, extra = acting_setup(("sac", 3, None, None, None))
         path = fo.OffPolicyFastPath(True, fast)
-        if not checked:
-            path.acting_key, path.acts = (actor, actor.size), 1  # no check is due
+        if not checked:  # as if this actor had been checked and no check were due
+            path.acting_key, path.acts, path.next_acting_check = (actor, actor.size), 1, 10**9
         torch.manual_seed(9)
         actions.append(path.act(explore, actor, np.ones((1, OBS_DIM), np.float32)))
         states.append(torch.get_rng_state())
