@@ -46,9 +46,10 @@ from .offpolicy import step_with_gradients
 CHECK_EVERY = 2000
 # Relative differences above which the two updates disagree. The gradients (in Adam's moments), the losses and
 # values agree to ~1e-11 in float64: more than 1e-16, as log(1 - y^2) and tanh's 1 - y^2 near |y| = 1 amplify the
-# last bit of a sum. A parameter's change is Adam's normalized step g / (|g| + eps), which amplifies the relative
-# rounding of a gradient element near eps up to ~1e-6 (tests/test_fast_offpolicy.py measures both); an edit of the
-# method changes some number by far more (a loss term, a bound, a target step: 1e-3 and up).
+# last bit of a sum (tests/test_fast_offpolicy.py measures it). A parameter's change is Adam's normalized step
+# g / (|g| + eps), which amplifies the relative rounding of a gradient element near eps by orders of magnitude (to
+# ~1e-13 / (4 eps)); an edit of the method changes some number by far more (a loss term, a bound, a target step:
+# 1e-3 and up).
 TOLERANCE = 1e-8
 STEP_TOLERANCE = 1e-4
 # an acting check draws this many actions for the current observation (repeated), so that an edit of the noise shows
