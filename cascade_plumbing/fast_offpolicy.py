@@ -542,8 +542,9 @@ def max_abs(tensors: list[torch.Tensor]) -> float:
 
 
 class OffPolicyFastPath:
-    """Runs an update through the fast path or, when off, the script's `definition`, checking the fast path
-    against it (module docstring). `announce(message, step)` gets the one-line warning when it switches off."""
+    """Runs an update (`update`) and acting (`act`) through the fast paths or, when off, the script's own function,
+    checking each fast path against it (module docstring). `announce(message, step)` gets the one-line warning when
+    one switches off."""
 
     def __init__(self, enabled: bool, fast: SACFast | DDPGFast, announce: Callable[[str, int], None] | None = None,
                  complete: Callable[[int], bool] = lambda step_in_iteration: True):
