@@ -120,7 +120,8 @@ def best_with_two_nets(curve: Curve) -> float:
 # The SAC and DDPG rows were measured after those scripts took the paper's code's defaults (issue 20: fixed
 # alpha, a random warm-up with each net; DDPG's 16-16 tanh nets with an annealed learning rate, which learn
 # Pendulum-v1 far too slowly for a test, hence InvertedPendulum-v4). Re-checked after the policy delay was counted
-# per net (6 seeds): SAC -283 / -184 / -182, DDPG 61 / 76 / 97.
+# per net (6 seeds): SAC -283 / -184 / -182, DDPG 61 / 76 / 97. Re-measured with their fast paths on (issue 30,
+# 2026-12-04, 10 seeds): SAC -267 / -186 / -170, DDPG 58.5 / 72.9 / 97.3.
 SCORES: dict[str, tuple[Callable[[Curve], float], float]] = {
     "cascade_ppo_inverted_pendulum": (final_return, 100.0),
     "ppo_inverted_pendulum": (final_return, 300.0),
