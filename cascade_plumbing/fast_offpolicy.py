@@ -25,18 +25,19 @@ before the new iteration's third update.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 import torch
 import torch.nn as nn
 
-from .fast import describe
+from .fast import describe, untouched_random_streams
 from .offpolicy import step_with_gradients
 
 # A check covers the first update with each new set of optimizers and the first complete one after it (one that
@@ -202,43 +203,47 @@ class CascadePass:
         weight_grads_by_parameter(*self.hidden_params, grads, into)
 
 
-def critic_layers(qf: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    return [(w.detach(), b.detach()) for w, b in zip(members(qf.weights), members(qf.biases))]
+class CriticPass:
+    """One forward pass of a script's stacked critics (QNetworks) on (obs, actions), kept for its backward pass."""
+
+    def __init__(self, qf: nn.Module, obs: torch.Tensor, actions: torch.Tensor):
+        self.qf, self.obs_dim = qf, obs.shape[1]
+        self.params = (members(qf.weights), members(qf.biases))
+        self.layers = [(w.detach(), b.detach()) for w, b in zip(*self.params)]
+        self.activation = activation_name(qf)
+        self.x = torch.cat([obs, actions], 1)
+        self.outs = stacked_forward(self.layers, self.x, self.activation, activate_last=False)
+        self.q = self.outs[-1].squeeze(-1)  # [m, B]
+
+    def backward(self, grad_q: torch.Tensor, weights: bool = True,
+                 input_grad: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+        return stacked_backward(self.layers, self.x, self.outs, grad_q.unsqueeze(-1), self.activation,
+                                activate_last=False, weights=weights, input_grad=input_grad)
 
 
 def critic_input_grad(qf: nn.Module, obs: torch.Tensor, actions: torch.Tensor,
-                      grad_q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Q values [m, B] of (obs, actions), and d(sum grad_q * Q)/d actions [B, A] (no weight gradient)."""
-    layers, activation = critic_layers(qf), activation_name(qf)
-    x = torch.cat([obs, actions], 1)
-    outs = stacked_forward(layers, x, activation, activate_last=False)
-    q = outs[-1].squeeze(-1)
-    _, grad_x = stacked_backward(layers, x, outs, grad_q(q).unsqueeze(-1), activation, activate_last=False,
-                                 weights=False, input_grad=True)
-    return q, grad_x[:, obs.shape[1]:]
+                      grad_q: Callable[[torch.Tensor], torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Q values [m, B] of (obs, actions), and d(sum grad_q(Q) * Q)/d actions [B, A] (no weight gradient)."""
+    critics = CriticPass(qf, obs, actions)
+    _, grad_x = critics.backward(grad_q(critics.q), weights=False, input_grad=True)
+    return critics.q, grad_x[:, critics.obs_dim:]
 
 
 def critic_step(qf: nn.Module, optimizer: torch.optim.Optimizer, obs: torch.Tensor, actions: torch.Tensor,
                 target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """One Adam step of every critic on the mean squared error to `target` [B]: their values [m, B] and each
     critic's loss [m]."""
-    layers, activation = critic_layers(qf), activation_name(qf)
-    x = torch.cat([obs, actions], 1)
-    outs = stacked_forward(layers, x, activation, activate_last=False)
-    q = outs[-1].squeeze(-1)
-    error = q - target
-    losses = error.pow(2).mean(1)
-    grads, _ = stacked_backward(layers, x, outs, (error * (2.0 / len(target))).unsqueeze(-1), activation,
-                                activate_last=False)
+    critics = CriticPass(qf, obs, actions)
+    error = critics.q - target
+    grads, _ = critics.backward(error * (2.0 / len(target)))
     into: dict[nn.Parameter, torch.Tensor] = {}
-    weight_grads_by_parameter(members(qf.weights), members(qf.biases), grads, into)
+    weight_grads_by_parameter(*critics.params, grads, into)
     apply_gradients(optimizer, into)
-    return q, losses
+    return critics.q, error.pow(2).mean(1)
 
 
 def critic_values(qf: nn.Module, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    x = torch.cat([obs, actions], 1)
-    return stacked_forward(critic_layers(qf), x, activation_name(qf), activate_last=False)[-1].squeeze(-1)
+    return CriticPass(qf, obs, actions).q
 
 
 def apply_gradients(optimizer: torch.optim.Optimizer, grads: dict[nn.Parameter, torch.Tensor]) -> None:
@@ -537,6 +542,18 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
     return None, worst
 
 
+@contextlib.contextmanager
+def float64_by_default() -> Iterator[None]:
+    """Inside, torch.randn & co. draw float64, as the checks' copies compute: else the script's float32 noise (its
+    `noise.pow(2)`) would put float32 rounding into the float64 comparison."""
+    dtype = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(dtype)
+
+
 def max_abs(tensors: list[torch.Tensor]) -> float:
     return max((t.abs().max().item() for t in tensors if t.numel()), default=0.0)
 
@@ -597,16 +614,14 @@ class OffPolicyFastPath:
         """`definition` and the numpy path on a float64 copy of the actor, CHECK_ROWS draws for obs, from the same
         random state; what differs."""
         start = time.perf_counter()
-        state, dtype = torch.get_rng_state(), torch.get_default_dtype()
-        others = np.random.get_state(), random.getstate()  # an edit may draw from numpy's or Python's stream
-        torch.set_default_dtype(torch.float64)
         try:
             twin = copy.deepcopy(actor).double()
             rows = np.repeat(obs, CHECK_ROWS, axis=0).astype(np.float64)
-            with torch.inference_mode():
-                reference = definition(twin, torch.as_tensor(rows), *extra).detach().numpy()
-            torch.set_rng_state(state)
-            fast = self.fast_explore(twin, rows, *extra)
+            with float64_by_default():
+                with untouched_random_streams(), torch.inference_mode():  # the script's draws
+                    reference = definition(twin, torch.as_tensor(rows), *extra).detach().numpy()
+                with untouched_random_streams():  # the same draws again
+                    fast = self.fast_explore(twin, rows, *extra)
             if fast.shape != reference.shape:
                 return f"the numpy acting path gives actions of shape {fast.shape}, explore {reference.shape}"
             error = float(np.abs(fast - reference).max() / max(np.abs(reference).max(), 1e-30))
@@ -616,10 +631,6 @@ class OffPolicyFastPath:
             self.worst = max(self.worst, error)
             return None
         finally:
-            torch.set_rng_state(state)
-            np.random.set_state(others[0])
-            random.setstate(others[1])
-            torch.set_default_dtype(dtype)
             self.check_seconds += time.perf_counter() - start
 
     def update(self, definition: Callable[..., dict], *arguments: Any, step: int = 0) -> dict:
@@ -654,30 +665,20 @@ class OffPolicyFastPath:
                   if p._backward_hooks or getattr(p, "_post_accumulate_grad_hooks", None)]
         if hooked:
             return f"a parameter of shape {hooked[0]} has a gradient hook, which the hand-written update does not apply"
-        state, dtype = torch.get_rng_state(), torch.get_default_dtype()
-        others = np.random.get_state(), random.getstate()  # an edit may draw from numpy's or Python's stream
-        # float64 noise too (torch.randn of the default dtype), else the script's float32 noise.pow(2) would be
-        # float32 rounding inside the float64 comparison
-        torch.set_default_dtype(torch.float64)
         try:
-            reference = float64_twins(arguments)
-            reference_out = definition(*reference)
-            torch.set_rng_state(state)
-            np.random.set_state(others[0])
-            random.setstate(others[1])
-            fast = float64_twins(arguments)
-            with torch.no_grad():
-                fast_out = self.fast_update(*fast)
+            with float64_by_default():
+                with untouched_random_streams():  # the script's draws (the run's streams stay where they are)
+                    reference = float64_twins(arguments)
+                    reference_out = definition(*reference)
+                with untouched_random_streams(), torch.no_grad():  # the same draws again
+                    fast = float64_twins(arguments)
+                    fast_out = self.fast_update(*fast)
             what, worst = disagreement(arguments, reference, fast, reference_out, fast_out)
             if what is None:
                 self.checks += 1
                 self.worst = max(self.worst, worst)
             return what
         finally:
-            torch.set_rng_state(state)  # the run draws as if nothing had been checked
-            np.random.set_state(others[0])
-            random.setstate(others[1])
-            torch.set_default_dtype(dtype)
             self.check_seconds += time.perf_counter() - start
 
     def switch_off(self, what: str, step: int, acting: bool = False) -> None:

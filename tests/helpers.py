@@ -33,6 +33,30 @@ def built_once(tmp_path_factory, name, build):
         return result
 
 
+def replay_batch(seed, size, obs_dim, low, high, obs_scale=1.0, reward_scale=1.0, done_every=3):
+    """(obs, actions, rewards, next_obs, dones) as ReplayBuffer.sample gives them, in the default dtype: actions
+    uniform in the bounds [low, high], every `done_every`-th row terminated."""
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(size, obs_dim, generator=g) * obs_scale
+    next_obs = torch.randn(size, obs_dim, generator=g) * obs_scale
+    low = torch.as_tensor(low, dtype=torch.get_default_dtype())
+    high = torch.as_tensor(high, dtype=torch.get_default_dtype())
+    actions = low + (high - low) * torch.rand(size, len(low), generator=g)
+    rewards = torch.randn(size, generator=g) * reward_scale
+    dones = (torch.arange(size) % done_every == 0).to(torch.get_default_dtype())
+    return obs, actions, rewards, next_obs, dones
+
+
+def perturb(module, scale, seed):
+    """The module with every parameter moved off its init, in place (fallbacks then differ between nets and
+    states, heads matter)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(scale * torch.randn(p.shape, generator=g))
+    return module
+
+
 def run_script(script, *args, timeout=600, env=None):
     """Run one of the top-level scripts as a user would; returns the CompletedProcess."""
     return subprocess.run(

@@ -20,27 +20,14 @@ import torch
 import cascade_ddpg as cd
 import cascade_sac as cs
 from cascade_plumbing import fast_offpolicy as fo
+from helpers import perturb, replay_batch
 
 OBS_DIM, ACT_DIM, BATCH = 7, 3, 64
 LOW, HIGH = np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 3.0])  # asymmetric bounds: scale and bias matter
 
 
 def batch(seed):
-    g = torch.Generator().manual_seed(seed)
-    obs, next_obs = torch.randn(BATCH, OBS_DIM, generator=g), torch.randn(BATCH, OBS_DIM, generator=g)
-    actions = torch.rand(BATCH, ACT_DIM, generator=g) * 2 - 1
-    rewards = torch.randn(BATCH, generator=g)
-    dones = (torch.arange(BATCH) % 5 == 0).float()
-    return obs, actions, rewards, next_obs, dones
-
-
-def perturb(module, scale, seed):
-    """Every parameter moved off its init, so that fallbacks differ between nets and rows and heads matter."""
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in module.parameters():
-            p.add_(scale * torch.randn(p.shape, generator=g))
-    return module
+    return replay_batch(seed, BATCH, OBS_DIM, [-1.0] * ACT_DIM, [1.0] * ACT_DIM, done_every=5)
 
 
 def sac_setup(n, autotune, hidden=32, seed=0):

@@ -19,6 +19,7 @@ import torch
 
 import cascade_ddpg as cd
 import cascade_sac as cs
+from helpers import perturb, replay_batch
 
 OBS_DIM, ACT_DIM, BATCH = 5, 3, 16
 LOW, HIGH = np.array([-1.0, -2.0, 0.0]), np.array([1.0, 2.0, 3.0])  # asymmetric bounds: scale and bias matter
@@ -37,22 +38,12 @@ def float64():
 
 def fixed_batch():
     """(obs, actions, rewards, next_obs, dones) as ReplayBuffer.sample gives them; every third row terminated."""
-    g = torch.Generator().manual_seed(7)
-    obs, next_obs = torch.randn(BATCH, OBS_DIM, generator=g) * 2, torch.randn(BATCH, OBS_DIM, generator=g) * 2
-    low, high = torch.as_tensor(LOW), torch.as_tensor(HIGH)
-    actions = low + (high - low) * torch.rand(BATCH, ACT_DIM, generator=g)
-    rewards = torch.randn(BATCH, generator=g) * 3
-    dones = (torch.arange(BATCH) % 3 == 0).double()
-    return obs, actions, rewards, next_obs, dones
+    return replay_batch(7, BATCH, OBS_DIM, LOW, HIGH, obs_scale=2, reward_scale=3, done_every=3)
 
 
 def perturbed(module, scale, seed):
     """The module with every parameter moved off its init (fallbacks then differ between nets and states)."""
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in module.parameters():
-            p.add_(scale * torch.randn(p.shape, generator=g))
-    return module.double()
+    return perturb(module, scale, seed).double()
 
 
 def plain_q(qf, obs, actions, activation):
