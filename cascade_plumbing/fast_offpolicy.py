@@ -4,8 +4,9 @@
 Why: an update of these small nets is mostly per-operation overhead (autograd's graph, torch's dispatch), and on
 the AMD EPYC CPUs we run on torch's CPU build computes tanh ~7x and a 256-wide layer's few-column head ~8x slower
 than numpy does (its matmuls go through Intel's MKL; README, "SAC and DDPG"). So the fast update writes each
-gradient out (elementwise work in torch, the products and tanh through numpy on views of the same memory), and
-acting runs the one observation through numpy views of the live weights. They are the script's update and
+gradient out and computes it in numpy, on views of the nets' own memory (a numpy operation on these arrays costs
+~1 us, torch's ~3-7 us; torch's kernels only where the last bit matters, and for Adam), and acting runs the one
+observation through numpy views of the live weights. They are the script's update and
 acting, step for step: the critics' regression to the same targets, the same actor loss, the same temperature
 update, the same Adam (`step_with_gradients`, the fused kernel that `minimize` also calls) and the same soft
 target updates, drawing the same random numbers from the same torch generator in the same order, so a run
@@ -61,18 +62,28 @@ FLOOR = 1e-3
 
 
 # ----------------------------------------------------------------------------------------------
-# Kernels: products through numpy's BLAS, tanh through numpy; elementwise work in torch
+# Kernels, in numpy on views of the nets' memory (a numpy operation on these small arrays costs ~1 us, torch's
+# ~3-7 us; products through numpy's OpenBLAS)
 # ----------------------------------------------------------------------------------------------
-def matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """a @ b (batched, broadcast), computed by numpy's BLAS on views of the same memory."""
-    return torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
+def view(t: torch.Tensor) -> np.ndarray:
+    """The tensor's memory as a numpy array (no copy: an optimizer's in-place step shows in it)."""
+    return t.detach().numpy()
 
 
-def tanh_(x: torch.Tensor) -> torch.Tensor:
-    """x <- tanh(x), in place, by numpy's vectorized tanh."""
-    array = x.numpy()
-    np.tanh(array, out=array)
-    return x
+def transposed(a: np.ndarray) -> np.ndarray:
+    return np.swapaxes(a, -1, -2)
+
+
+def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b (batched, broadcast) by numpy's BLAS; an outer product (inner dimension 1: a critic's one-unit output, a
+    fallback logit) as the broadcast product it is, which numpy's matmul computes ~10x slower without BLAS."""
+    return a * b if a.shape[-1] == 1 else np.matmul(a, b)
+
+
+def torch_(function: Callable[[torch.Tensor], torch.Tensor], x: np.ndarray) -> np.ndarray:
+    """torch's own kernel on numpy memory, where its last bit matters (the scripts' sigmoid, and tanh before
+    log(1 - y^2)) or numpy's version would warn (exp's overflow in a sigmoid)."""
+    return function(torch.from_numpy(x)).numpy()
 
 
 def activation_name(module: nn.Module) -> str:
@@ -85,47 +96,50 @@ def activation_name(module: nn.Module) -> str:
     raise ValueError(f"no hand-written gradient for the activation {activation}")
 
 
-def activate_(z: torch.Tensor, activation: str) -> torch.Tensor:
-    return tanh_(z) if activation == "tanh" else torch.relu_(z)
+def activate_(z: np.ndarray, activation: str) -> np.ndarray:
+    return np.tanh(z, out=z) if activation == "tanh" else np.maximum(z, 0, out=z)
 
 
-def activation_backward(grad: torch.Tensor, out: torch.Tensor, activation: str) -> torch.Tensor:
+def activation_backward(grad: np.ndarray, out: np.ndarray, activation: str) -> np.ndarray:
     """grad * f'(z), written with the activation's output: 1 - tanh^2, or the ReLU's mask."""
     if activation == "tanh":
-        return torch.ops.aten.tanh_backward(grad, out)
-    return torch.ops.aten.threshold_backward(grad, out, 0)  # relu's own backward kernel: out > 0 iff its input is
+        return grad * (1 - out * out)
+    return grad * (out > 0)  # out > 0 iff the ReLU's input was
 
 
 # ----------------------------------------------------------------------------------------------
 # A stack of m MLPs with weights [m, in, out] (the critics; the actors' hidden layers)
 # ----------------------------------------------------------------------------------------------
-def stacked_forward(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor, activation: str,
-                    activate_last: bool) -> list[torch.Tensor]:
+def stacked_forward(layers: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray, activation: str,
+                    activate_last: bool) -> list[np.ndarray]:
     """Each layer's output (after its activation), for input x [B, in] read by every member, or [m, B, in]."""
     outs = []
     for i, (weight, bias) in enumerate(layers):
-        z = matmul(x if i == 0 else outs[-1], weight).add_(bias)
+        z = matmul(x if i == 0 else outs[-1], weight)
+        z += bias
         outs.append(activate_(z, activation) if activate_last or i < len(layers) - 1 else z)
     return outs
 
 
-def stacked_backward(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor, outs: list[torch.Tensor],
-                     grad: torch.Tensor, activation: str, activate_last: bool, weights: bool = True,
-                     input_grad: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
+def stacked_backward(layers: list[tuple[np.ndarray, np.ndarray]], x: np.ndarray, outs: list[np.ndarray],
+                     grad: np.ndarray, activation: str, activate_last: bool, weights: bool = True,
+                     input_columns: slice | None = None) -> tuple[list[np.ndarray], np.ndarray | None]:
     """Back through `stacked_forward` from the gradient of its last output: the gradients [weight, bias, ...] of
-    every layer (with `weights`) and of the input x (with `input_grad`; summed over members for a shared x)."""
-    grads: list[torch.Tensor] = []
+    every layer (with `weights`) and, with `input_columns`, of those columns of the input x (summed over members
+    for a shared x)."""
+    grads: list[np.ndarray] = []
     for i in reversed(range(len(layers))):
         if activate_last or i < len(layers) - 1:
             grad = activation_backward(grad, outs[i], activation)
         if weights:
             below = x if i == 0 else outs[i - 1]
-            grads[:0] = [matmul(below.transpose(-1, -2), grad), grad.sum(-2, keepdim=True)]
-        if i > 0 or input_grad:
-            grad = matmul(grad, layers[i][0].transpose(-1, -2))
-    if not input_grad:
+            grads[:0] = [matmul(transposed(below), grad), grad.sum(-2, keepdims=True)]
+        if i > 0:
+            grad = matmul(grad, transposed(layers[i][0]))
+    if input_columns is None:
         return grads, None
-    return grads, grad.sum(0) if x.dim() == 2 else grad
+    grad_x = matmul(grad, transposed(layers[0][0][:, input_columns]))  # only the rows of W_1 these columns meet
+    return grads, grad_x.sum(0) if x.ndim == 2 else grad_x
 
 
 def members(parameter_list: nn.ParameterList) -> list[nn.Parameter]:
@@ -133,8 +147,8 @@ def members(parameter_list: nn.ParameterList) -> list[nn.Parameter]:
     return list(parameter_list._parameters.values())
 
 
-def weight_grads_by_parameter(weights: list[nn.Parameter], biases: list[nn.Parameter], grads: list[torch.Tensor],
-                              into: dict[nn.Parameter, torch.Tensor]) -> None:
+def weight_grads_by_parameter(weights: list[nn.Parameter], biases: list[nn.Parameter], grads: list[np.ndarray],
+                              into: dict[nn.Parameter, np.ndarray]) -> None:
     for weight, bias, grad_weight, grad_bias in zip(weights, biases, grads[0::2], grads[1::2]):
         into[weight], into[bias] = grad_weight, grad_bias
 
@@ -142,63 +156,66 @@ def weight_grads_by_parameter(weights: list[nn.Parameter], biases: list[nn.Param
 # ----------------------------------------------------------------------------------------------
 # The Cascade combination C_n = sum_i w_i b_i and its gradient
 # ----------------------------------------------------------------------------------------------
-def cascade_contributions(fallback: torch.Tensor) -> torch.Tensor:
+def cascade_contributions(fallback: np.ndarray) -> np.ndarray:
     """w_i = (1 - l_i) prod_{j>i} l_j (l_1 := 0) of fallbacks [n-1, B, 1]: [n, B, 1]."""
-    ones = fallback.new_ones((1, *fallback.shape[1:]))
-    later = torch.cat([fallback, ones]).flip(0).cumprod(0).flip(0)
-    return torch.cat([ones, 1 - fallback]) * later
+    ones = np.ones((1, *fallback.shape[1:]), fallback.dtype)  # (fallback has no rows at n = 1)
+    later = np.concatenate([fallback, ones])[::-1].cumprod(0)[::-1]
+    return np.concatenate([ones, 1 - fallback]) * later
 
 
-def cascade_backward(fallback: torch.Tensor, weighted: torch.Tensor, contribution: torch.Tensor,
-                     grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def cascade_backward(fallback: np.ndarray, weighted: np.ndarray, contribution: np.ndarray,
+                     grad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Gradients of C = sum_i weighted_i (weighted_i = w_i b_i) with respect to each net's output b_i, [n, B, D],
     and each fallback logit, [n-1, B, 1]. Without a division: for C_i = l_i C_{i-1} + (1 - l_i) b_i,
     dC/dlogit_i = l_i (1 - l_i) prod_{j>i} l_j (C_{i-1} - b_i) = (1 - l_i) S_{i-1} - l_i w_i b_i, where
     S_{i-1} = sum_{j<i} w_j b_j (the products prod_{j>i} l_j cancel against the partial ensemble's weights)."""
     partial = weighted[:-1].cumsum(0)  # S_1 .. S_{n-1}
-    below = (partial * grad).sum(-1, keepdim=True)
-    own = (weighted[1:] * grad).sum(-1, keepdim=True)
+    below = (partial * grad).sum(-1, keepdims=True)
+    own = (weighted[1:] * grad).sum(-1, keepdims=True)
     grad_logit = (1 - fallback) * below - fallback * own
     return contribution * grad, grad_logit
 
 
 class CascadePass:
-    """One forward pass of a script's CascadeActor (all nets at once), kept for its backward pass. The actor's
-    outputs of every net (`head`: SAC's [mean | raw log-std], DDPG's mu) are combined by the fallbacks."""
+    """One forward pass of a script's CascadeActor (all nets at once) on obs [B, obs_dim], kept for its backward
+    pass. The actor's outputs of every net (`head`: SAC's [mean | raw log-std], DDPG's mu) are combined by the
+    fallbacks."""
 
-    def __init__(self, actor: nn.Module, obs: torch.Tensor, head: tuple[nn.Parameter, nn.Parameter]):
+    def __init__(self, actor: nn.Module, obs: np.ndarray, head: tuple[nn.Parameter, nn.Parameter]):
         self.actor, self.obs = actor, obs
         self.activation = activation_name(actor)
         self.hidden_params = (members(actor.hidden_weights), members(actor.hidden_biases))
-        self.hidden = [(w.detach(), b.detach()) for w, b in zip(*self.hidden_params)]
+        self.hidden = [(view(w), view(b)) for w, b in zip(*self.hidden_params)]
         self.head_params = head
-        self.head = (head[0].detach(), head[1].detach())
-        self.fallback_head = (actor.fallback_weight.detach(), actor.fallback_bias.detach())
+        self.head = (view(head[0]), view(head[1]))
+        self.fallback_head = (view(actor.fallback_weight), view(actor.fallback_bias))
         self.trunk = stacked_forward(self.hidden, obs, self.activation, activate_last=True)
         top = self.trunk[-1]  # [n, B, H]
-        self.out = matmul(top, self.head[0]).add_(self.head[1])  # [n, B, D]: each net's output
-        self.fallback = torch.sigmoid_(matmul(top[1:], self.fallback_head[0]).add_(self.fallback_head[1]))
+        self.out = matmul(top, self.head[0])  # [n, B, D]: each net's output
+        self.out += self.head[1]
+        logit = matmul(top[1:], self.fallback_head[0])
+        logit += self.fallback_head[1]
+        self.fallback = torch_(torch.sigmoid_, logit)
         self.contribution = cascade_contributions(self.fallback)
         self.weighted = self.contribution * self.out
 
-    def combined(self) -> torch.Tensor:
+    def combined(self) -> np.ndarray:
         return self.weighted.sum(0)
 
-    def backward_combined(self, grad_combined: torch.Tensor, into: dict[nn.Parameter, torch.Tensor]) -> None:
+    def backward_combined(self, grad_combined: np.ndarray, into: dict[nn.Parameter, np.ndarray]) -> None:
         """The actor's parameter gradients from the gradient of the combination C = sum_i w_i b_i, [B, D]."""
         self.backward(*cascade_backward(self.fallback, self.weighted, self.contribution, grad_combined), into)
 
-    def backward(self, grad_out: torch.Tensor, grad_logit: torch.Tensor,
-                 into: dict[nn.Parameter, torch.Tensor]) -> None:
+    def backward(self, grad_out: np.ndarray, grad_logit: np.ndarray, into: dict[nn.Parameter, np.ndarray]) -> None:
         """The actor's parameter gradients from those of each net's output [n, B, D] and fallback logit."""
         top = self.trunk[-1]
         actor = self.actor
-        into[self.head_params[0]] = matmul(top.transpose(-1, -2), grad_out)
-        into[self.head_params[1]] = grad_out.sum(1, keepdim=True)
-        into[actor.fallback_weight] = matmul(top[1:].transpose(-1, -2), grad_logit)
-        into[actor.fallback_bias] = grad_logit.sum(1, keepdim=True)
-        grad_top = matmul(grad_out, self.head[0].transpose(-1, -2))
-        grad_top[1:] += matmul(grad_logit, self.fallback_head[0].transpose(-1, -2))
+        into[self.head_params[0]] = matmul(transposed(top), grad_out)
+        into[self.head_params[1]] = grad_out.sum(1, keepdims=True)
+        into[actor.fallback_weight] = matmul(transposed(top[1:]), grad_logit)
+        into[actor.fallback_bias] = grad_logit.sum(1, keepdims=True)
+        grad_top = matmul(grad_out, transposed(self.head[0]))
+        grad_top[1:] += matmul(grad_logit, transposed(self.fallback_head[0]))
         grads, _ = stacked_backward(self.hidden, self.obs, self.trunk, grad_top, self.activation, activate_last=True)
         weight_grads_by_parameter(*self.hidden_params, grads, into)
 
@@ -206,47 +223,47 @@ class CascadePass:
 class CriticPass:
     """One forward pass of a script's stacked critics (QNetworks) on (obs, actions), kept for its backward pass."""
 
-    def __init__(self, qf: nn.Module, obs: torch.Tensor, actions: torch.Tensor):
+    def __init__(self, qf: nn.Module, obs: np.ndarray, actions: np.ndarray):
         self.qf, self.obs_dim = qf, obs.shape[1]
         self.params = (members(qf.weights), members(qf.biases))
-        self.layers = [(w.detach(), b.detach()) for w, b in zip(*self.params)]
+        self.layers = [(view(w), view(b)) for w, b in zip(*self.params)]
         self.activation = activation_name(qf)
-        self.x = torch.cat([obs, actions], 1)
+        self.x = np.concatenate([obs, actions], 1)
         self.outs = stacked_forward(self.layers, self.x, self.activation, activate_last=False)
-        self.q = self.outs[-1].squeeze(-1)  # [m, B]
+        self.q = self.outs[-1][..., 0]  # [m, B]
 
-    def backward(self, grad_q: torch.Tensor, weights: bool = True,
-                 input_grad: bool = False) -> tuple[list[torch.Tensor], torch.Tensor | None]:
-        return stacked_backward(self.layers, self.x, self.outs, grad_q.unsqueeze(-1), self.activation,
-                                activate_last=False, weights=weights, input_grad=input_grad)
+    def backward(self, grad_q: np.ndarray, weights: bool = True,
+                 input_columns: slice | None = None) -> tuple[list[np.ndarray], np.ndarray | None]:
+        return stacked_backward(self.layers, self.x, self.outs, grad_q[..., None], self.activation,
+                                activate_last=False, weights=weights, input_columns=input_columns)
 
 
-def critic_input_grad(qf: nn.Module, obs: torch.Tensor, actions: torch.Tensor,
-                      grad_q: Callable[[torch.Tensor], torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+def critic_input_grad(qf: nn.Module, obs: np.ndarray, actions: np.ndarray,
+                      grad_q: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Q values [m, B] of (obs, actions), and d(sum grad_q(Q) * Q)/d actions [B, A] (no weight gradient)."""
     critics = CriticPass(qf, obs, actions)
-    _, grad_x = critics.backward(grad_q(critics.q), weights=False, input_grad=True)
-    return critics.q, grad_x[:, critics.obs_dim:]
+    _, grad_actions = critics.backward(grad_q(critics.q), weights=False, input_columns=slice(critics.obs_dim, None))
+    return critics.q, grad_actions
 
 
-def critic_step(qf: nn.Module, optimizer: torch.optim.Optimizer, obs: torch.Tensor, actions: torch.Tensor,
-                target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def critic_step(qf: nn.Module, optimizer: torch.optim.Optimizer, obs: np.ndarray, actions: np.ndarray,
+                target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One Adam step of every critic on the mean squared error to `target` [B]: their values [m, B] and each
     critic's loss [m]."""
     critics = CriticPass(qf, obs, actions)
     error = critics.q - target
     grads, _ = critics.backward(error * (2.0 / len(target)))
-    into: dict[nn.Parameter, torch.Tensor] = {}
+    into: dict[nn.Parameter, np.ndarray] = {}
     weight_grads_by_parameter(*critics.params, grads, into)
     apply_gradients(optimizer, into)
-    return critics.q, error.pow(2).mean(1)
+    return critics.q, (error * error).mean(1)
 
 
-def critic_values(qf: nn.Module, obs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+def critic_values(qf: nn.Module, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
     return CriticPass(qf, obs, actions).q
 
 
-def apply_gradients(optimizer: torch.optim.Optimizer, grads: dict[nn.Parameter, torch.Tensor]) -> None:
+def apply_gradients(optimizer: torch.optim.Optimizer, grads: dict[nn.Parameter, np.ndarray]) -> None:
     """The optimizer's step with these gradients (`minimize` after its autograd.grad); every parameter it holds
     must have one: a parameter the hand-written update does not know of (an edit's) raises here."""
     params = [p for group in optimizer.param_groups for p in group["params"]]
@@ -254,7 +271,7 @@ def apply_gradients(optimizer: torch.optim.Optimizer, grads: dict[nn.Parameter, 
     if missing:
         raise KeyError(f"the optimizer holds a parameter of shape {missing[0]} the hand-written update has no "
                        "gradient for")
-    step_with_gradients(optimizer, params, [grads[p] for p in params])
+    step_with_gradients(optimizer, params, [torch.from_numpy(grads[p]) for p in params])
 
 
 @torch.no_grad()
@@ -262,12 +279,18 @@ def lerp_targets(target: nn.Module, source: nn.Module, tau: float) -> None:
     torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
 
 
+def as_tensors(out: dict) -> dict:
+    """The logged values as tensors, as the scripts' updates return them."""
+    return {key: torch.from_numpy(np.asarray(value)) if isinstance(value, np.ndarray | np.generic) else value
+            for key, value in out.items()}
+
+
 # ----------------------------------------------------------------------------------------------
 # Acting in the training env: one observation through all nets, in numpy on views of the live weights
 # ----------------------------------------------------------------------------------------------
 class NumpyActor:
-    """Views (no copies: the optimizer's in-place steps show at once) of a script's CascadeActor's weights, and its
-    forward in numpy: per call ~20 numpy operations of a few microseconds, where torch's cost ~10 us each."""
+    """Views (no copies: the optimizer's in-place steps show at once) of a script's CascadeActor's weights, kept
+    between steps, and its forward in numpy."""
 
     def __init__(self, head: tuple[str, str]):
         self.head = head
@@ -278,10 +301,9 @@ class NumpyActor:
         cached = self.cached
         if (not cached or cached[0] is not actor or cached[1] is not actor._hidden or cached[2] is not actor._heads
                 or any(p.data_ptr() != pointer for p, pointer in cached[4])):  # (`p.data = ...` swaps the memory)
-            hidden = [(w.detach().numpy(), b.detach().numpy()) for w, b in zip(members(actor.hidden_weights),
-                                                                             members(actor.hidden_biases))]
-            head = [getattr(actor, name).detach().numpy() for name in self.head]
-            fallback = (actor.fallback_weight.detach().numpy(), actor.fallback_bias.detach().numpy())
+            hidden = [(view(w), view(b)) for w, b in zip(members(actor.hidden_weights), members(actor.hidden_biases))]
+            head = [view(getattr(actor, name)) for name in self.head]
+            fallback = (view(actor.fallback_weight), view(actor.fallback_bias))
             params = [*members(actor.hidden_weights), *members(actor.hidden_biases), actor.fallback_weight,
                       actor.fallback_bias, *(getattr(actor, name) for name in self.head)]
             self.cached = cached = (actor, actor._hidden, actor._heads, (hidden, head, fallback, activation_name(actor)),
@@ -291,21 +313,12 @@ class NumpyActor:
     def forward(self, actor: nn.Module, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each net's output [n, B, D] and its contribution w_i [n, B, 1] for obs [B, obs_dim]."""
         hidden, (head_weight, head_bias), (fallback_weight, fallback_bias), activation = self.views(actor)
-        h = obs
-        for weight, bias in hidden:
-            h = np.matmul(h, weight)
-            h += bias
-            if activation == "tanh":
-                np.tanh(h, out=h)
-            else:
-                np.maximum(h, 0, out=h)
-        out = np.matmul(h, head_weight)
+        top = stacked_forward(hidden, obs, activation, activate_last=True)[-1]
+        out = np.matmul(top, head_weight)
         out += head_bias
-        fallback = 1.0 / (1.0 + np.exp(-(np.matmul(h[1:], fallback_weight) + fallback_bias)))
-        ones = np.ones((1, *fallback.shape[1:]), fallback.dtype)  # (fallback has no rows at n = 1)
-        later = np.cumprod(np.concatenate([fallback, ones])[::-1], axis=0)[::-1]
-        contribution = np.concatenate([ones, 1.0 - fallback]) * later
-        return out, contribution
+        logit = matmul(top[1:], fallback_weight)
+        logit += fallback_bias
+        return out, cascade_contributions(torch_(torch.sigmoid_, logit))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -328,25 +341,26 @@ class SACFast:
         y = np.tanh(combined[:, :a] + np.exp(log_std) * noise)
         return y * actor.action_scale.numpy() + actor.action_bias.numpy()
 
-    def sample(self, actor: nn.Module, obs: torch.Tensor) -> dict:
+    def sample(self, actor: nn.Module, obs: np.ndarray) -> dict:
         """The actor's squashed Gaussian sample on obs, with what its backward pass needs."""
         cascade = CascadePass(actor, obs, (actor.head_weight, actor.head_bias))
         combined = cascade.combined()
         a = actor.act_dim
         # torch's tanh on the [B, A] outputs, as the script: log(1 - y^2) near |y| = 1 would turn the last-bit
         # difference of another tanh into ~1e-10 of the log-prob
-        mean, bounded = combined[:, :a], torch.tanh(combined[:, a:])
+        mean, bounded = combined[:, :a], torch_(torch.tanh, combined[:, a:])
         log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (bounded + 1)
-        noise = torch.randn(mean.shape).to(mean.dtype)  # squashed_sample's draw: float32, the CPU generator
-        std = torch.exp(log_std)
-        y = torch.tanh(mean + std * noise)
-        scale, bias = actor.action_scale, actor.action_bias
+        # squashed_sample's draw: the CPU generator, in the default dtype (float32; the checks' float64)
+        noise = torch.randn(mean.shape).numpy().astype(mean.dtype, copy=False)
+        std = np.exp(log_std)
+        y = torch_(torch.tanh, mean + std * noise)
+        scale, bias = view(actor.action_scale), view(actor.action_bias)
         squash = scale * (1 - y * y) + 1e-6
-        log_prob = (-0.5 * noise * noise - log_std - 0.5 * math.log(2 * math.pi) - torch.log(squash)).sum(1)
+        log_prob = (-0.5 * noise * noise - log_std - 0.5 * math.log(2 * math.pi) - np.log(squash)).sum(1)
         return {"cascade": cascade, "action": y * scale + bias, "log_prob": log_prob, "y": y, "noise": noise,
                 "std": std, "bounded": bounded, "squash": squash, "scale": scale}
 
-    def actor_grads(self, s: dict, grad_action: torch.Tensor, grad_log_prob: float) -> dict:
+    def actor_grads(self, s: dict, grad_action: np.ndarray, grad_log_prob: float) -> dict:
         """d/d(actor's parameters) of sum(grad_action * action) + grad_log_prob * sum(log_prob)."""
         y, scale = s["y"], s["scale"]
         grad_y = grad_action * scale + grad_log_prob * 2 * y * scale / s["squash"]
@@ -354,19 +368,18 @@ class SACFast:
         grad_log_std = grad_u * s["std"] * s["noise"] - grad_log_prob
         half_range = 0.5 * (self.log_std_max - self.log_std_min)
         grad_raw = grad_log_std * half_range * (1 - s["bounded"] * s["bounded"])
-        into: dict[nn.Parameter, torch.Tensor] = {}
-        s["cascade"].backward_combined(torch.cat([grad_u, grad_raw], 1), into)
+        into: dict[nn.Parameter, np.ndarray] = {}
+        s["cascade"].backward_combined(np.concatenate([grad_u, grad_raw], 1), into)
         return into
 
     def __call__(self, args: Any, step_in_iteration: int, batch: tuple[torch.Tensor, ...], actor: nn.Module,
                  qf: nn.Module, qf_target: nn.Module, q_optimizer: torch.optim.Optimizer,
                  actor_optimizer: torch.optim.Optimizer, alpha: float, log_alpha: torch.Tensor,
                  a_optimizer: torch.optim.Optimizer) -> dict:
-        b_obs, b_actions, b_rewards, b_next_obs, b_dones = batch
+        b_obs, b_actions, b_rewards, b_next_obs, b_dones = (view(t) for t in batch)
         batch_size = len(b_obs)
         following = self.sample(actor, b_next_obs)
-        min_qf_next = critic_values(qf_target, b_next_obs, following["action"]).min(0).values \
-            - alpha * following["log_prob"]
+        min_qf_next = critic_values(qf_target, b_next_obs, following["action"]).min(0) - alpha * following["log_prob"]
         next_q_value = b_rewards + (1 - b_dones) * args.gamma * min_qf_next
         qf_a_values, losses = critic_step(qf, q_optimizer, b_obs, b_actions, next_q_value)
         out = {"qf_a_values": qf_a_values, "qf1_loss": losses[0], "qf2_loss": losses[1],
@@ -376,25 +389,28 @@ class SACFast:
             for _ in range(args.policy_frequency):
                 s = self.sample(actor, b_obs)
 
-                def grad_q(q: torch.Tensor, s: dict = s) -> torch.Tensor:  # d mean(-min_j Q_j) / dQ: the smaller critic
-                    minimum = q.min(0)
-                    s["min_q"] = minimum.values
-                    return torch.zeros_like(q).scatter_(0, minimum.indices.unsqueeze(0), -1.0 / batch_size)
+                def grad_q(q: np.ndarray, s: dict = s) -> np.ndarray:  # d mean(-min_j Q_j) / dQ: the smaller critic
+                    smaller = q.argmin(0)
+                    columns = np.arange(q.shape[1])
+                    s["min_q"] = q[smaller, columns]
+                    grad = np.zeros_like(q)
+                    grad[smaller, columns] = -1.0 / batch_size
+                    return grad
 
                 _, grad_action = critic_input_grad(qf, b_obs, s["action"], grad_q)
                 out["actor_loss"] = (alpha * s["log_prob"] - s["min_q"]).mean()
                 apply_gradients(actor_optimizer, self.actor_grads(s, grad_action, alpha / batch_size))
                 if args.autotune:
                     log_pi = self.sample(actor, b_obs)["log_prob"]
-                    alpha_loss = (-log_alpha.detach().exp() * (log_pi + -float(actor.act_dim))).mean()
+                    alpha_loss = (-np.exp(view(log_alpha)) * (log_pi + -float(actor.act_dim))).mean()
                     out["alpha_loss"] = alpha_loss
-                    apply_gradients(a_optimizer, {log_alpha: alpha_loss.reshape(1)})  # d/dlog_alpha = the loss
+                    apply_gradients(a_optimizer, {log_alpha: np.reshape(alpha_loss, 1)})  # d/dlog_alpha = the loss
                     alpha = log_alpha.exp().item()
 
         if step_in_iteration % args.target_network_frequency == 0:
             lerp_targets(qf_target, qf, args.tau)
         out["alpha"] = alpha
-        return out
+        return as_tensors(out)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -419,21 +435,20 @@ class DDPGFast:
         return np.maximum(np.minimum(action, bias + scale), bias - scale)
 
     @staticmethod
-    def actor_pass(actor: nn.Module, obs: torch.Tensor) -> tuple[CascadePass, torch.Tensor, torch.Tensor]:
+    def actor_pass(actor: nn.Module, obs: np.ndarray) -> tuple[CascadePass, np.ndarray, np.ndarray]:
         """The actor's action on obs (and the pass and the squashed value before scaling, for the backward)."""
         cascade = CascadePass(actor, obs, (actor.mu_weight, actor.mu_bias))
         if actor.combine_before_tanh:
-            squashed = torch.tanh(cascade.combined())
+            squashed = np.tanh(cascade.combined())
         else:
-            cascade.squashed = torch.tanh(cascade.out)
+            cascade.squashed = np.tanh(cascade.out)
             squashed = (cascade.contribution * cascade.squashed).sum(0)
-        return cascade, squashed, squashed * actor.action_scale + actor.action_bias
+        return cascade, squashed, squashed * view(actor.action_scale) + view(actor.action_bias)
 
     @staticmethod
-    def actor_grads(actor: nn.Module, cascade: CascadePass, squashed: torch.Tensor,
-                    grad_action: torch.Tensor) -> dict:
-        grad_squashed = grad_action * actor.action_scale
-        into: dict[nn.Parameter, torch.Tensor] = {}
+    def actor_grads(actor: nn.Module, cascade: CascadePass, squashed: np.ndarray, grad_action: np.ndarray) -> dict:
+        grad_squashed = grad_action * view(actor.action_scale)
+        into: dict[nn.Parameter, np.ndarray] = {}
         if actor.combine_before_tanh:
             cascade.backward_combined(grad_squashed * (1 - squashed * squashed), into)
         else:  # C = sum_i w_i tanh(mu_i): the combination's gradient on the squashed outputs, then each tanh's
@@ -445,7 +460,7 @@ class DDPGFast:
     def __call__(self, args: Any, step_in_iteration: int, batch: tuple[torch.Tensor, ...], actor: nn.Module,
                  target_actor: nn.Module, qf: nn.Module, qf_target: nn.Module, q_optimizer: torch.optim.Optimizer,
                  actor_optimizer: torch.optim.Optimizer) -> dict:
-        b_obs, b_actions, b_rewards, b_next_obs, b_dones = batch
+        b_obs, b_actions, b_rewards, b_next_obs, b_dones = (view(t) for t in batch)
         _, _, next_actions = self.actor_pass(target_actor, b_next_obs)
         next_q_value = b_rewards + (1 - b_dones) * args.gamma * critic_values(qf_target, b_next_obs, next_actions)[0]
         qf_a_values, losses = critic_step(qf, q_optimizer, b_obs, b_actions, next_q_value)
@@ -453,12 +468,12 @@ class DDPGFast:
 
         if step_in_iteration % args.policy_frequency == 0:
             cascade, squashed, action = self.actor_pass(actor, b_obs)
-            q, grad_action = critic_input_grad(qf, b_obs, action, lambda q: torch.full_like(q, -1.0 / len(b_obs)))
+            q, grad_action = critic_input_grad(qf, b_obs, action, lambda q: np.full_like(q, -1.0 / len(b_obs)))
             out["actor_loss"] = -q[0].mean()
             apply_gradients(actor_optimizer, self.actor_grads(actor, cascade, squashed, grad_action))
             lerp_targets(target_actor, actor, args.tau)
             lerp_targets(qf_target, qf, args.tau)
-        return out
+        return as_tensors(out)
 
 
 # ----------------------------------------------------------------------------------------------

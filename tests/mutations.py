@@ -393,8 +393,11 @@ MUTATIONS += [
     # the off-policy fast path (cascade_plumbing/fast_offpolicy.py): its math, and its run-time check
     *[Mutation(f"fast off-policy: {name}", FAST_OFFPOLICY, old, new, ("tests/test_fast_offpolicy.py",)) for name, old, new in (
         ("dC/dlogit with S_i for S_(i-1)", "partial = weighted[:-1].cumsum(0)", "partial = weighted[1:].cumsum(0)"),
-        ("ReLU's gradient through negative inputs", "return torch.ops.aten.threshold_backward(grad, out, 0)",
-         "return grad"),
+        ("ReLU's gradient through negative inputs", "return grad * (out > 0)", "return grad"),
+        ("the fallback logits without their sigmoid", "self.fallback = torch_(torch.sigmoid_, logit)",
+         "self.fallback = logit"),
+        ("the actions' gradient through W_1's rows shifted by one", "transposed(layers[0][0][:, input_columns])",
+         "transposed(layers[0][0][:, input_columns.start - 1 : -1])"),
         ("SAC's log-prob without the squash's gradient",
          'grad_y = grad_action * scale + grad_log_prob * 2 * y * scale / s["squash"]', "grad_y = grad_action * scale"),
         ("the critics' MSE gradient halved", "critics.backward(error * (2.0 / len(target)))",
