@@ -51,7 +51,8 @@ class ReplayBuffer:
 
     def sample(self, batch_size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
         """(obs, actions, rewards, next_obs, dones) of `batch_size` uniformly drawn rows (numpy's global RNG)."""
-        rows = torch.from_numpy(self.data[np.random.randint(0, self.size, size=batch_size)]).to(device)
+        # np.take: the same rows as data[indices], gathered in about half the time
+        rows = torch.from_numpy(np.take(self.data, np.random.randint(0, self.size, size=batch_size), axis=0)).to(device)
         o, a = self.obs_dim, self.act_dim
         return rows[:, :o], rows[:, 2 * o : 2 * o + a], rows[:, -2], rows[:, o : 2 * o], rows[:, -1]
 
