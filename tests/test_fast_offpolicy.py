@@ -128,6 +128,18 @@ def test_float32_fast_update_tracks_the_definition():
                 assert torch.allclose(p, q, rtol=1e-4, atol=1e-6), key
 
 
+def test_matmul_is_numpys_product_also_for_an_outer_product():
+    """The kernel's shortcut for an inner dimension of 1 (a broadcast product) gives numpy's matmul bit for bit,
+    batched and broadcast; other shapes are numpy's matmul itself."""
+    rng = np.random.default_rng(0)
+    for a_shape, b_shape in (((3, 256, 1), (3, 1, 16)), ((256, 1), (2, 1, 64)), ((0, 256, 1), (0, 1, 16)),
+                             ((2, 256, 64), (2, 64, 1)), ((256, 14), (2, 14, 64))):
+        for dtype in (np.float32, np.float64):
+            a, b = rng.standard_normal(a_shape).astype(dtype), rng.standard_normal(b_shape).astype(dtype)
+            product = fo.matmul(a, b)
+            assert product.dtype == dtype and np.array_equal(product, np.matmul(a, b)), (a_shape, b_shape)
+
+
 def wrong(function, **changes):
     """`function` with some of its globals replaced (an edit of the script a researcher might make)."""
     return types.FunctionType(function.__code__, {**function.__globals__, **changes}, function.__name__,
