@@ -122,7 +122,8 @@ def best_with_two_nets(curve: Curve) -> float:
 # Pendulum-v1 far too slowly for a test, hence InvertedPendulum-v4). Re-checked after the policy delay was counted
 # per net (6 seeds): SAC -283 / -184 / -182, DDPG 61 / 76 / 97. Re-measured with their fast paths on (issue 30,
 # 2026-12-04, 10 seeds): SAC -267 / -186 / -170, DDPG 58.5 / 72.9 / 97.3; and after they moved to numpy (10 seeds):
-# SAC -346 / -181 / -168, DDPG 58.5 / 72.9 / 97.3 (the same DDPG trajectories: its float32 rounding did not change).
+# SAC -346 / -181 / -168, DDPG 58.5 / 72.9 / 97.3 (DDPG's returns the same: its trajectories stayed
+# within float32 rounding of the earlier ones over these short runs).
 SCORES: dict[str, tuple[Callable[[Curve], float], float]] = {
     "cascade_ppo_inverted_pendulum": (final_return, 100.0),
     "ppo_inverted_pendulum": (final_return, 300.0),

@@ -392,8 +392,9 @@ MUTATIONS += [
              ("tests/test_hacking.py::test_a_resumed_actor_keeps_its_saved_frozen_count_through_an_edited_freeze_below",)),
     # the off-policy fast path (cascade_plumbing/fast_offpolicy.py): its math, and its run-time check
     *[Mutation(f"fast off-policy: {name}", FAST_OFFPOLICY, old, new, ("tests/test_fast_offpolicy.py",)) for name, old, new in (
-        ("dC/dlogit with S_i for S_(i-1)", "partial = weighted[:-1].cumsum(0)", "partial = weighted[1:].cumsum(0)"),
-        ("ReLU's gradient through negative inputs", "return grad * (out > 0)", "return grad"),
+        ("dC/dlogit with S_i for S_(i-1)", "partial = cumsum0(weighted[:-1])", "partial = cumsum0(weighted[1:])"),
+        ("the contributions' products over the nets below", "later[i] *= later[i + 1]", "later[i + 1] *= later[i]"),
+        ("ReLU's gradient through negative inputs", "return np.where(out > 0, grad, 0)", "return grad"),
         ("the fallback logits without their sigmoid", "self.fallback = torch_(torch.sigmoid_, logit)",
          "self.fallback = logit"),
         ("the actions' gradient through W_1's rows shifted by one", "transposed(layers[0][0][:, input_columns])",

@@ -20,6 +20,8 @@ import torch
 import cascade_ddpg as cd
 import cascade_sac as cs
 from cascade_plumbing import fast_offpolicy as fo
+from cascade_plumbing.offpolicy import step_with_gradients
+from cascade_plumbing.replay import ReplayBuffer
 from helpers import perturb, replay_batch
 
 OBS_DIM, ACT_DIM, BATCH = 7, 3, 64
@@ -126,6 +128,45 @@ def test_float32_fast_update_tracks_the_definition():
         for key in ("actor", "qf", "qf_target"):
             for p, q in zip(reference[key].parameters(), ours[key].parameters()):
                 assert torch.allclose(p, q, rtol=1e-4, atol=1e-6), key
+
+
+@pytest.mark.parametrize("script", [cs, cd])
+def test_the_replay_buffers_strided_batch_gives_contiguous_float32_gradients(script, monkeypatch):
+    """On the column views the replay buffer hands over (strided, as in a run), the fast update steps Adam with
+    contiguous float32 gradients of the parameters' shapes (torch's fused CPU Adam steps a strided gradient wrongly,
+    without an error), and leaves what it leaves on contiguous copies of the same batch."""
+    buffer = ReplayBuffer(500, OBS_DIM, ACT_DIM)
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        buffer.add(rng.standard_normal((1, OBS_DIM)), rng.standard_normal((1, OBS_DIM)),
+                   rng.uniform(-1, 1, (1, ACT_DIM)), rng.standard_normal(1), rng.random(1) < 0.1)
+    np.random.seed(3)
+    strided = buffer.sample(64, torch.device("cpu"))
+    assert not all(t.is_contiguous() for t in strided)
+    seen = []
+
+    def recording(optimizer, params, grads):
+        seen.extend((tuple(p.shape), tuple(g.shape), g.dtype, g.is_contiguous()) for p, g in zip(params, grads))
+        return step_with_gradients(optimizer, params, grads)
+
+    monkeypatch.setattr(fo, "step_with_gradients", recording)
+    if script is cs:
+        setup, arguments, fast = (lambda: sac_setup(3, True)), sac_arguments, fo.SACFast((cs.LOG_STD_MIN, cs.LOG_STD_MAX))
+    else:
+        setup, arguments, fast = (lambda: ddpg_setup(4, False, "relu")), ddpg_arguments, fo.DDPGFast()
+    states = []
+    for batch_ in (strided, tuple(t.contiguous() for t in strided)):
+        state = setup()
+        for step in range(2):  # a critic-only and an actor step (policy frequency 2)
+            torch.manual_seed(step)
+            with torch.no_grad():
+                out = fast(*(arguments(state, step, 0)[:2] + (batch_,) + arguments(state, step, 0)[3:]))
+            state["alpha"] = out.get("alpha", 0.0)
+        states.append(state)
+    assert seen and all(p == g and dtype == torch.float32 and contiguous for p, g, dtype, contiguous in seen), seen
+    for key in ("actor", "qf"):
+        for p, q in zip(states[0][key].parameters(), states[1][key].parameters()):
+            assert torch.allclose(p, q, rtol=1e-6, atol=1e-7), key
 
 
 def test_matmul_is_numpys_product_also_for_an_outer_product():
