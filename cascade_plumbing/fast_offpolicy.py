@@ -103,7 +103,7 @@ def cumsum0(x: np.ndarray) -> np.ndarray:
 
 def torch_(function: Callable[[torch.Tensor], torch.Tensor], x: np.ndarray) -> np.ndarray:
     """torch's own kernel on numpy memory, where its last bit matters (the scripts' sigmoid, and tanh before
-    log(1 - y^2)) or numpy's version would warn (exp's overflow in a sigmoid)."""
+    log(1 - y^2)), numpy's version would warn (exp's overflow in a sigmoid) or is slower (ReLU)."""
     return function(torch.from_numpy(x)).numpy()
 
 
@@ -118,14 +118,17 @@ def activation_name(module: nn.Module) -> str:
 
 
 def activate_(z: np.ndarray, activation: str) -> np.ndarray:
-    return np.tanh(z, out=z) if activation == "tanh" else np.maximum(z, 0, out=z)
+    """z <- f(z) in place: numpy's tanh, torch's ReLU (numpy's maximum takes ~5x longer on a [2, 256, 256] batch)."""
+    return np.tanh(z, out=z) if activation == "tanh" else torch_(torch.relu_, z)
 
 
 def activation_backward(grad: np.ndarray, out: np.ndarray, activation: str) -> np.ndarray:
     """grad * f'(z), written with the activation's output: 1 - tanh^2, or the ReLU's mask."""
     if activation == "tanh":
         return grad * (1 - out * out)
-    return np.where(out > 0, grad, 0)  # out > 0 iff the ReLU's input was; 0 elsewhere even for a non-finite grad
+    # autograd's own kernel (out > 0 iff the ReLU's input was; 0 elsewhere, even for a non-finite grad): numpy's
+    # where() takes ~30x longer on a [2, 256, 256] batch
+    return torch.ops.aten.threshold_backward(torch.from_numpy(grad), torch.from_numpy(out), 0).numpy()
 
 
 # ----------------------------------------------------------------------------------------------

@@ -394,7 +394,9 @@ MUTATIONS += [
     *[Mutation(f"fast off-policy: {name}", FAST_OFFPOLICY, old, new, ("tests/test_fast_offpolicy.py",)) for name, old, new in (
         ("dC/dlogit with S_i for S_(i-1)", "partial = cumsum0(weighted[:-1])", "partial = cumsum0(weighted[1:])"),
         ("the contributions' products over the nets below", "later[i] *= later[i + 1]", "later[i + 1] *= later[i]"),
-        ("ReLU's gradient through negative inputs", "return np.where(out > 0, grad, 0)", "return grad"),
+        ("ReLU's gradient through negative inputs",
+         "return torch.ops.aten.threshold_backward(torch.from_numpy(grad), torch.from_numpy(out), 0).numpy()",
+         "return grad"),
         ("the fallback logits without their sigmoid", "self.fallback = torch_(torch.sigmoid_, logit)",
          "self.fallback = logit"),
         ("the actions' gradient through W_1's rows shifted by one", "transposed(layers[0][0][:, input_columns])",
