@@ -21,7 +21,9 @@ once the full stack is updated:
   kernels (matmuls, activations and their backward, the fused Adam) under torch.profiler, per update (the
   profiler slows the rest, not the kernels); what no removal of per-operation overhead can go below with these
   kernels on this CPU. The fast path (the default; `--autograd` also measures the scripts without it) does the
-  same arithmetic partly in numpy (tanh, the products), which the profiler does not see, and can go below it;
+  same arithmetic in numpy, which the profiler does not see, and can go below it;
+- products: the fast update's matrix products alone (numpy, the same operands, back to back), per update: what
+  no fast update in Python can go below (this tree with its fast paths on; nan otherwise);
 - the env's own limit: steps/s of the same wrapped training env with random actions (`env_sps`).
 
 `--cleanrl DIR --cleanrl-python PY` also times whole processes, interleaved: the SAC baseline
@@ -215,6 +217,34 @@ def arithmetic_floor(update_calls: list, rounds: int = 10, cuda: bool = False) -
     return kernel_us / 1e3 / (rounds * len(update_calls))
 
 
+def products_time(update_calls: list, rounds: int = 20) -> float:
+    """ms per update of the fast update's matrix products alone: the operands of every `matmul` of one pass of
+    `update_calls` (recorded as they are, transposed views included), multiplied again back to back by numpy.
+    What a fast update that only multiplies cannot go below, whatever per-operation overhead it removes."""
+    import cascade_plumbing.fast_offpolicy as kernels
+
+    recorded: list[tuple] = []
+    product = kernels.matmul
+
+    def recording(a, b):
+        recorded.append((a, b))
+        return product(a, b)
+
+    kernels.matmul = recording
+    try:
+        for call in update_calls:
+            call()
+    finally:
+        kernels.matmul = product
+    times = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        for a, b in recorded:
+            product(a, b)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1e3 / len(update_calls)
+
+
 def env_limit(env_id: str, clip: float, steps: int = 3000) -> float:
     """steps/s of the scripts' training env (the same wrappers) with uniform random actions."""
     from cascade_plumbing.envs import make_env, make_vector_env
@@ -285,6 +315,13 @@ def run_worker(config: str, a: Args) -> dict:
             state["parts"] = splitter(script, run_update, a, update_args, state["buffer"])
             args, device = update_args[0], update_args[2][0].device
             # the arithmetic of the script's own update: torch.profiler does not see the fast path's numpy kernels
+            fast = state.get("fast")
+            if fast is not None and fast.on and not a.cuda:  # the fast update's products (numpy), this tree only
+                def fast_call(step):
+                    with torch.no_grad():
+                        fast.fast_update(args, step, state["buffer"].sample(args.batch_size, device), *update_args[3:])
+                state["products"] = products_time([
+                    (lambda step=step: fast_call(step)) for step in range(args.policy_frequency)])
             state["floor"] = arithmetic_floor([
                 (lambda step=step: update(args, step, state["buffer"].sample(args.batch_size, device), *update_args[3:]))
                 for step in range(args.policy_frequency)], cuda=a.cuda)
@@ -320,6 +357,7 @@ def run_worker(config: str, a: Args) -> dict:
     parts = state["parts"]
     total = sum(v for k, v in parts.items() if k != "alpha")
     return {"config": config, "sps": sps, "parts_ms": parts, "update_ms": total, "floor_ms": state["floor"],
+            "products_ms": state.get("products", float("nan")),
             "fast_path": None if fast is None else fast.on,
             "env_sps": env_limit(a.env_id, args.obs_reward_clip), "torch": torch.__version__,
             "device": torch.cuda.get_device_name() if a.cuda else "cpu",
@@ -410,6 +448,7 @@ def main() -> None:
             "all_update_ms": [r["update_ms"] for r in rs],
             "parts_ms": {p: statistics.median(r["parts_ms"][p] for r in rs) for p in PARTS},
             "floor_ms": statistics.median(r["floor_ms"] for r in rs),
+            "products_ms": statistics.median(r.get("products_ms", float("nan")) for r in rs),
             "env_sps": statistics.median(r["env_sps"] for r in rs),
             "peak_rss_mb": statistics.median(r["peak_rss_mb"] for r in rs)}
     ratios = {}
@@ -431,14 +470,15 @@ def main() -> None:
           f"warm-up updates; split from {a.rounds} x {a.calls} calls per part; {a.threads} torch thread(s); "
           f"{'nets on the GPU (' + results[runs[0][:2]][0]['device'] + '), floor = GPU kernel time; ' if a.cuda else ''}"
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
-    print("| configuration | tree | steps/s | env alone, steps/s | ms/update | autograd kernels | sampling | critic | "
-          "actor | targets | (alpha) | peak RSS MB |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| configuration | tree | steps/s | env alone, steps/s | ms/update | autograd kernels | products | sampling | "
+          "critic | actor | targets | (alpha) | peak RSS MB |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for key, r in summary.items():
         config, tree = key.split("@")
         p = r["parts_ms"]
         label = {"ref": a.ref, "autograd": "this tree, --autograd"}.get(tree, "this tree")
         print(f"| {config} | {label} | {r['sps']:.0f} | {r['env_sps']:.0f} | {r['update_ms']:.2f} | {r['floor_ms']:.2f} | "
+              f"{r['products_ms']:.2f} | "
               + " | ".join(f"{p[name]:.2f}" for name in PARTS) + f" | {r['peak_rss_mb']:.0f} |")
     for pair, q in ratios.items():
         config, other = pair.split(" / ")
