@@ -44,7 +44,7 @@ from .offpolicy import step_with_gradients
 # A check covers the first update with each new set of optimizers and the first complete one after it (one that
 # also updates the actor, the temperature and the targets: every 2nd by default), then one complete update about
 # every CHECK_EVERY (at random phases); acting at each new net and about every CHECK_EVERY steps. A check costs about
-# six float64 updates (DDPG: ~9 ms, SAC 256-wide: ~36 ms): ~0.5% of a run at this spacing.
+# six float64 updates (DDPG: ~10 ms, SAC 256-wide: ~50 ms): under 1% of a run at this spacing.
 CHECK_EVERY = 2000
 # Relative differences above which the two updates disagree. The gradients (in Adam's moments), the losses and
 # values agree to ~1e-11 in float64: more than 1e-16, as log(1 - y^2) and tanh's 1 - y^2 near |y| = 1 amplify the
