@@ -22,8 +22,8 @@ once the full stack is updated:
   profiler slows the rest, not the kernels); what no removal of per-operation overhead can go below with these
   kernels on this CPU. The fast path (the default; `--autograd` also measures the scripts without it) does the
   same arithmetic in numpy, which the profiler does not see, and can go below it;
-- products: the fast update's matrix products alone (numpy, the same operands, back to back), per update: what
-  no fast update in Python can go below (this tree with its fast paths on; nan otherwise);
+- products: the fast update's matrix products alone (numpy, the same operands, back to back), per update: a lower
+  bound for this update's products (this tree with its fast paths on; nan otherwise);
 - the env's own limit: steps/s of the same wrapped training env with random actions (`env_sps`).
 
 `--cleanrl DIR --cleanrl-python PY` also times whole processes, interleaved: the SAC baseline
@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import resource
 import statistics
@@ -217,10 +218,17 @@ def arithmetic_floor(update_calls: list, rounds: int = 10, cuda: bool = False) -
     return kernel_us / 1e3 / (rounds * len(update_calls))
 
 
+def median_of_measured(values: list[float]) -> float:
+    """The median of the values that were measured (nan: not measured in that run)."""
+    measured = [v for v in values if not math.isnan(v)]
+    return statistics.median(measured) if measured else math.nan
+
+
 def products_time(update_calls: list, rounds: int = 20) -> float:
     """ms per update of the fast update's matrix products alone: the operands of every `matmul` of one pass of
     `update_calls` (recorded as they are, transposed views included), multiplied again back to back by numpy.
-    What a fast update that only multiplies cannot go below, whatever per-operation overhead it removes."""
+    A lower bound for this update's products (numpy, one thread, warm caches). The calls step the live nets and
+    optimizers once more each, which does not matter: the run stops right after."""
     import cascade_plumbing.fast_offpolicy as kernels
 
     recorded: list[tuple] = []
@@ -314,14 +322,15 @@ def run_worker(config: str, a: Args) -> dict:
             splitter = split_sac if script_name == "cascade_sac" else split_ddpg
             state["parts"] = splitter(script, run_update, a, update_args, state["buffer"])
             args, device = update_args[0], update_args[2][0].device
-            # the arithmetic of the script's own update: torch.profiler does not see the fast path's numpy kernels
             fast = state.get("fast")
-            if fast is not None and fast.on and not a.cuda:  # the fast update's products (numpy), this tree only
+            # the fast update's products (numpy): this tree's, with its fast paths on
+            if fast is not None and fast.on and not a.cuda and os.path.abspath(a.root) == ROOT:
                 def fast_call(step):
                     with torch.no_grad():
                         fast.fast_update(args, step, state["buffer"].sample(args.batch_size, device), *update_args[3:])
                 state["products"] = products_time([
                     (lambda step=step: fast_call(step)) for step in range(args.policy_frequency)])
+            # the arithmetic of the script's own update: torch.profiler does not see the fast path's numpy kernels
             state["floor"] = arithmetic_floor([
                 (lambda step=step: update(args, step, state["buffer"].sample(args.batch_size, device), *update_args[3:]))
                 for step in range(args.policy_frequency)], cuda=a.cuda)
@@ -357,7 +366,7 @@ def run_worker(config: str, a: Args) -> dict:
     parts = state["parts"]
     total = sum(v for k, v in parts.items() if k != "alpha")
     return {"config": config, "sps": sps, "parts_ms": parts, "update_ms": total, "floor_ms": state["floor"],
-            "products_ms": state.get("products", float("nan")),
+            "products_ms": state.get("products", math.nan),
             "fast_path": None if fast is None else fast.on,
             "env_sps": env_limit(a.env_id, args.obs_reward_clip), "torch": torch.__version__,
             "device": torch.cuda.get_device_name() if a.cuda else "cpu",
@@ -448,7 +457,7 @@ def main() -> None:
             "all_update_ms": [r["update_ms"] for r in rs],
             "parts_ms": {p: statistics.median(r["parts_ms"][p] for r in rs) for p in PARTS},
             "floor_ms": statistics.median(r["floor_ms"] for r in rs),
-            "products_ms": statistics.median(r.get("products_ms", float("nan")) for r in rs),
+            "products_ms": median_of_measured([r.get("products_ms", math.nan) for r in rs]),
             "env_sps": statistics.median(r["env_sps"] for r in rs),
             "peak_rss_mb": statistics.median(r["peak_rss_mb"] for r in rs)}
     ratios = {}

@@ -2,10 +2,11 @@
 `ddpg_update`, with the gradients written out by hand, and the same acting as their `explore`, in numpy.
 
 Why: an update of these small nets is mostly per-operation overhead (autograd's graph, torch's dispatch), and on
-the AMD EPYC CPUs we run on torch's CPU build computes tanh ~7x and a 256-wide layer's few-column head ~8x slower
+the AMD EPYC CPUs we run on torch's CPU build computes tanh ~7x and a 256-wide layer's few-column head ~9x slower
 than numpy does (its matmuls go through Intel's MKL; README, "SAC and DDPG"). So the fast update writes each
 gradient out and computes it in numpy, on views of the nets' own memory (a numpy operation on these arrays costs
-~1 us, torch's ~3-7 us; torch's kernels for the sigmoid, the log-prob's tanh, Adam and the soft target updates),
+~1 us, torch's ~3-7 us; torch's kernels for the ReLU and its backward, the sigmoid, SAC's tanh of its log-std and
+of its sample, Adam and the soft target updates),
 and acting runs the one observation through numpy views of the live weights. They are the script's update and
 acting, step for step: the critics' regression to the same targets, the same actor loss, the same temperature
 update, the same Adam (`step_with_gradients`, the fused kernel that `minimize` also calls) and the same soft
@@ -83,13 +84,13 @@ def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def sum_rows(x: np.ndarray) -> np.ndarray:
     """x.sum(-2, keepdims=True) (over the batch: a bias's gradient) as one BLAS product with a row of ones: numpy
     reduces over a middle axis ~10x slower (a [6, 256, 16] array: 50 us against 3 us)."""
-    return np.matmul(np.ones((1, x.shape[-2]), x.dtype), x)
+    return matmul(np.ones((1, x.shape[-2]), x.dtype), x)
 
 
 def sum_last(x: np.ndarray) -> np.ndarray:
     """x.sum(-1, keepdims=True) as one BLAS product with a column of ones: numpy reduces many short rows (an
     action's 3 columns) ~10x slower."""
-    return np.matmul(x, np.ones((x.shape[-1], 1), x.dtype))
+    return matmul(x, np.ones((x.shape[-1], 1), x.dtype))
 
 
 def cumsum0(x: np.ndarray) -> np.ndarray:
@@ -126,8 +127,8 @@ def activation_backward(grad: np.ndarray, out: np.ndarray, activation: str) -> n
     """grad * f'(z), written with the activation's output: 1 - tanh^2, or the ReLU's mask."""
     if activation == "tanh":
         return grad * (1 - out * out)
-    # autograd's own kernel (out > 0 iff the ReLU's input was; 0 elsewhere, even for a non-finite grad): numpy's
-    # where() takes ~30x longer on a [2, 256, 256] batch
+    # autograd's own kernel (out > 0 iff the ReLU's input was): 0 where out <= 0, even for a non-finite grad (a
+    # product with the mask would give NaN there), the grad elsewhere; numpy's where() takes ~30x longer
     return torch.ops.aten.threshold_backward(torch.from_numpy(grad), torch.from_numpy(out), 0).numpy()
 
 
@@ -184,7 +185,7 @@ def cascade_contributions(fallback: np.ndarray) -> np.ndarray:
     """w_i = (1 - l_i) prod_{j>i} l_j (l_1 := 0) of fallbacks [n-1, B, 1]: [n, B, 1]."""
     ones = np.ones((1, *fallback.shape[1:]), fallback.dtype)  # (fallback has no rows at n = 1)
     later = np.concatenate([fallback, ones])  # [l_2, ..., l_n, 1]
-    for i in range(len(later) - 2, -1, -1):  # later_i = prod_{j>i} l_j (a reversed cumprod, ~2x faster in numpy)
+    for i in range(len(later) - 2, -1, -1):  # later_i = prod_{j>i} l_j: a reversed cumprod, as a loop ~2x faster
         later[i] *= later[i + 1]
     return np.concatenate([ones, 1 - fallback]) * later
 
