@@ -6,9 +6,8 @@ the AMD EPYC CPUs we run on torch's CPU build computes tanh ~7x and a 256-wide l
 than numpy does (its matmuls go through Intel's MKL; README, "SAC and DDPG"). So the fast update writes each
 gradient out and computes it in numpy, on views of the nets' own memory (a numpy operation on these arrays costs
 ~1 us, torch's ~3-7 us; torch's kernels for the ReLU and its backward, the sigmoid, SAC's tanh of its log-std and
-of its sample, Adam and the soft target updates),
-and acting runs the one observation through numpy views of the live weights. They are the script's update and
-acting, step for step: the critics' regression to the same targets, the same actor loss, the same temperature
+of its sample, Adam and the soft target updates), and acting runs the one observation through numpy views of the
+live weights. They are the script's update and acting, step for step: the critics' regression to the same targets, the same actor loss, the same temperature
 update, the same Adam (`step_with_gradients`, the fused kernel that `minimize` also calls) and the same soft
 target updates, drawing the same random numbers from the same torch generator in the same order, so a run
 follows the same trajectory up to float rounding.
