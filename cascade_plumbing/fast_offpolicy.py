@@ -202,6 +202,18 @@ def cascade_backward(fallback: np.ndarray, weighted: np.ndarray, contribution: n
     return contribution * grad, grad_logit
 
 
+def cascade_heads(top: np.ndarray, head: tuple[np.ndarray, np.ndarray],
+                  fallback_head: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """From the nets' top hidden layers [n, B, H]: each net's output [n, B, D] (its head), the fallbacks l_i of
+    nets 2..n [n-1, B, 1] (their fallback logits' sigmoid) and every net's contribution w_i [n, B, 1]."""
+    out = matmul(top, head[0])
+    out += head[1]
+    logit = matmul(top[1:], fallback_head[0])
+    logit += fallback_head[1]
+    fallback = torch_(torch.sigmoid_, logit)
+    return out, fallback, cascade_contributions(fallback)
+
+
 class CascadePass:
     """One forward pass of a script's CascadeActor (all nets at once) on obs [B, obs_dim], kept for its backward
     pass. The actor's outputs of every net (`head`: SAC's [mean | raw log-std], DDPG's mu) are combined by the
@@ -216,13 +228,7 @@ class CascadePass:
         self.head = (view(head[0]), view(head[1]))
         self.fallback_head = (view(actor.fallback_weight), view(actor.fallback_bias))
         self.trunk = stacked_forward(self.hidden, obs, self.activation, activate_last=True)
-        top = self.trunk[-1]  # [n, B, H]
-        self.out = matmul(top, self.head[0])  # [n, B, D]: each net's output
-        self.out += self.head[1]
-        logit = matmul(top[1:], self.fallback_head[0])
-        logit += self.fallback_head[1]
-        self.fallback = torch_(torch.sigmoid_, logit)
-        self.contribution = cascade_contributions(self.fallback)
+        self.out, self.fallback, self.contribution = cascade_heads(self.trunk[-1], self.head, self.fallback_head)
         self.weighted = self.contribution * self.out
 
     def combined(self) -> np.ndarray:
@@ -339,13 +345,10 @@ class NumpyActor:
 
     def forward(self, actor: nn.Module, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each net's output [n, B, D] and its contribution w_i [n, B, 1] for obs [B, obs_dim]."""
-        hidden, (head_weight, head_bias), (fallback_weight, fallback_bias), activation = self.views(actor)
-        top = stacked_forward(hidden, obs, activation, activate_last=True)[-1]
-        out = np.matmul(top, head_weight)
-        out += head_bias
-        logit = matmul(top[1:], fallback_weight)
-        logit += fallback_bias
-        return out, cascade_contributions(torch_(torch.sigmoid_, logit))
+        hidden, head, fallback_head, activation = self.views(actor)
+        out, _, contribution = cascade_heads(stacked_forward(hidden, obs, activation, activate_last=True)[-1], head,
+                                             fallback_head)
+        return out, contribution
 
 
 # ----------------------------------------------------------------------------------------------
@@ -358,12 +361,16 @@ class SACFast:
         self.log_std_min, self.log_std_max = log_std_bounds
         self.numpy_actor = NumpyActor(("head_weight", "head_bias"))
 
+    def log_std(self, bounded: np.ndarray) -> np.ndarray:
+        """The combined raw log-std, squashed to (-1, 1), rescaled to the script's bounds (CleanRL's)."""
+        return self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (bounded + 1)
+
     def explore(self, actor: nn.Module, obs: np.ndarray) -> np.ndarray:
         """`explore`'s action (a sample of the squashed Gaussian) in numpy, drawing the same torch noise."""
         out, contribution = self.numpy_actor.forward(actor, obs.astype(actor.action_scale.numpy().dtype))
         combined = (contribution * out).sum(0)
         a = actor.act_dim
-        log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (np.tanh(combined[:, a:]) + 1)
+        log_std = self.log_std(np.tanh(combined[:, a:]))
         noise = torch.randn(combined[:, :a].shape).numpy().astype(combined.dtype)  # squashed_sample's draw
         y = np.tanh(combined[:, :a] + np.exp(log_std) * noise)
         return y * actor.action_scale.numpy() + actor.action_bias.numpy()
@@ -376,7 +383,7 @@ class SACFast:
         # torch's tanh on the [B, A] outputs, as the script: log(1 - y^2) near |y| = 1 would turn the last-bit
         # difference of another tanh into ~1e-10 of the log-prob
         mean, bounded = combined[:, :a], torch_(torch.tanh, combined[:, a:])
-        log_std = self.log_std_min + 0.5 * (self.log_std_max - self.log_std_min) * (bounded + 1)
+        log_std = self.log_std(bounded)
         # squashed_sample's draw: the CPU generator, in the default dtype (float32; the checks' float64)
         noise = torch.randn(mean.shape).numpy().astype(mean.dtype, copy=False)
         std = np.exp(log_std)
