@@ -42,6 +42,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from cascade_plumbing.checkpoints import load_checkpoint as load_script_checkpoint
+from cascade_plumbing.checkpoints import load_optimizer
 from cascade_plumbing.envs import make_env, make_vector_env
 from cascade_plumbing.errors import fail
 from cascade_plumbing.fast_offpolicy import DDPGFast, OffPolicyFastPath
@@ -419,7 +420,7 @@ def train(args: Args, checkpoint: dict | None = None,
         target_actor = actor_from_checkpoint(checkpoint, device, key="target_actor")
         qf.load_state_dict(checkpoint["qf"])
         qf_target.load_state_dict(checkpoint["qf_target"])
-        q_optimizer.load_state_dict(checkpoint["q_optimizer"])
+        load_optimizer(q_optimizer, checkpoint["q_optimizer"])
 
     for iteration in range(start_iteration, args.n + 1):
         # --- a new Cascade iteration: new base net, emptied buffer, fresh actor optimizer; the critic kept (fresh
@@ -450,8 +451,9 @@ def train(args: Args, checkpoint: dict | None = None,
         for step_in_iteration in range(args.k):
             global_step += 1
             if args.anneal_lr:  # the paper's code: linearly to 0 within each iteration
-                lr_now = (1.0 - step_in_iteration / args.k) * args.learning_rate
-                q_optimizer.param_groups[0]["lr"] = actor_optimizer.param_groups[0]["lr"] = lr_now
+                frac = 1.0 - step_in_iteration / args.k
+                for group in (*q_optimizer.param_groups, *actor_optimizer.param_groups):  # each from its initial LR
+                    group["lr"] = frac * group.setdefault("initial_lr", group["lr"])
             # CleanRL: uniform actions for the first learning_starts steps, updates after learning_starts + 1.
             # The paper's code restarts that count with each net; without the restart, only the run's first
             # learning_starts steps are random and updates wait for learning_starts + 1 stored transitions.

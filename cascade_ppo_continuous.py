@@ -389,7 +389,8 @@ def act(actor: CascadeActor, obs: np.ndarray) -> np.ndarray:
 def ppo_loss(mean: torch.Tensor, log_std: torch.Tensor, value: torch.Tensor, actions: torch.Tensor,
              old_logprob: torch.Tensor, advantages: torch.Tensor, returns: torch.Tensor, old_value: torch.Tensor,
              args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """CleanRL's PPO loss on one minibatch (ppo_continuous_action.py); returns the loss and its parts."""
+    """CleanRL's PPO loss on one minibatch (ppo_continuous_action.py); returns the loss and its parts (a scalar
+    part added here is logged as `losses/<name>`)."""
     dist = action_distribution(mean, log_std)
     logratio = dist.log_prob(actions).sum(1) - old_logprob
     ratio = logratio.exp()
@@ -425,12 +426,15 @@ def autograd_gradients(actor: CascadeActor, critic: TanhMLP, params: list[nn.Par
     return loss.detach(), {key: value.detach() for key, value in parts.items()}
 
 
-def make_optimizer(params: list[nn.Parameter], learning_rate: float) -> torch.optim.Adam:
-    """PPO's Adam (eps 1e-5, CleanRL); the fused kernel updates all parameters at once, ~3x faster on CPU.
-    Any other optimizer works too: the fast path calls the fused Adam kernel directly only for this exact
-    Adam and checks its step against `optimizer_step` below. `params` is `[flat_params]`, the one buffer
-    that every parameter of the actor and critic (and their .grad) is a view of (`share_one_buffer`)."""
-    return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)
+def make_optimizer(actor: CascadeActor, critic: TanhMLP, flat_params: nn.Parameter,
+                   learning_rate: float) -> torch.optim.Adam:
+    """PPO's Adam (eps 1e-5, CleanRL) over `flat_params`, the one buffer that every parameter of the actor and
+    critic (and their .grad) is a view of (`share_one_buffer`): the fused kernel updates them all at once, ~3x
+    faster on CPU. Any other optimizer works too, also one over parameter groups with their own learning rates
+    (e.g. `[{"params": actor.parameters()}, {"params": critic.parameters(), "lr": 1e-3}]`: each group's LR
+    follows the schedule from its own initial value). The fast path calls the fused Adam kernel directly only
+    for this exact Adam over `[flat_params]`, checked against `optimizer_step` below; otherwise it steps aside."""
+    return torch.optim.Adam([flat_params], lr=learning_rate, eps=1e-5, fused=True)
 
 
 def optimizer_step(flat_params: nn.Parameter, optimizer: torch.optim.Optimizer, args: Args) -> None:
@@ -509,7 +513,7 @@ def train(args: Args, checkpoint: dict | None = None,
             if critic is None or not args.start_full:  # --start-full: the paper's code keeps its one critic
                 critic = make_critic(obs_dim).to(device)
             flat_params = share_one_buffer([*actor.parameters(), *critic.parameters()])
-            optimizer = make_optimizer([flat_params], args.learning_rate)
+            optimizer = make_optimizer(actor, critic, flat_params, args.learning_rate)
         run.iteration_start(iteration, actor, critic, global_step)
         if on_iteration_start is not None:
             on_iteration_start(
@@ -523,8 +527,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 frac = 1.0 - ((iteration - 1) * updates_per_iteration + update - 1.0) / total_updates
             else:
                 frac = 1.0
-            for group in optimizer.param_groups:  # one group here (the flat buffer); an edit may make more
-                group["lr"] = frac * args.learning_rate
+            for group in optimizer.param_groups:  # one group here (the flat buffer); an edit may make more, each
+                group["lr"] = frac * group.setdefault("initial_lr", group["lr"])  # with its own initial LR
 
             # --- rollout: the weights do not change during it; values, log-probs and fallback
             # statistics are computed for the whole batch afterwards ---
@@ -743,8 +747,8 @@ class RunLog(RunRecord):
         """The saved critic and optimizer of an iteration the checkpoint was written in the middle of."""
         critic = self.saved_critic(checkpoint, device)
         flat_params = share_one_buffer([*actor.parameters(), *critic.parameters()])
-        optimizer = make_optimizer([flat_params], self.args.learning_rate)
-        optimizer.load_state_dict(checkpoint["optimizer"])
+        optimizer = make_optimizer(actor, critic, flat_params, self.args.learning_rate)
+        checkpoints.load_optimizer(optimizer, checkpoint["optimizer"])
         return critic, flat_params, optimizer
 
     # --- logging ---

@@ -363,7 +363,7 @@ def ppo_update(policy: Callable[[torch.Tensor], torch.Tensor], critic: nn.Module
     """CleanRL ppo.py's update on the flat rollout `batch`: --update-epochs epochs of shuffled minibatches, one
     gradient step each (norm clipped) on everything `optimizer` holds; stops early above --target-kl. `policy`:
     observations -> logits. Returns the last minibatch's loss and the update's scalars under CleanRL's names."""
-    params = optimizer.param_groups[0]["params"]
+    params = [param for group in optimizer.param_groups for param in group["params"]]
     batch_size = len(batch["obs"])
     minibatch_size = batch_size // args.num_minibatches
     b_inds = np.arange(batch_size)
@@ -466,7 +466,7 @@ def train(args: Args, checkpoint: dict | None = None,
         if checkpoint is not None and iteration == start_iteration and start_update > 1:  # resumed mid-iteration
             critic = saved_critic(checkpoint, obs_dim, device)
             optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
-            optimizer.load_state_dict(checkpoint["optimizer"])
+            checkpoints.load_optimizer(optimizer, checkpoint["optimizer"])
         else:
             # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
             if not args.start_full:
@@ -477,7 +477,7 @@ def train(args: Args, checkpoint: dict | None = None,
                 critic = make_critic(obs_dim).to(device)
             optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
         size = actor.size
-        params = optimizer.param_groups[0]["params"]
+        params = [param for group in optimizer.param_groups for param in group["params"]]
         n_params = count_parameters(actor, critic)
         writer.add_scalar("cascade/size", size, global_step)
         writer.add_scalar("cascade/parameters", n_params, global_step)
@@ -494,7 +494,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 frac = 1.0 - ((iteration - 1) * updates_per_iteration + update - 1.0) / total_updates
             else:
                 frac = 1.0
-            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+            for group in optimizer.param_groups:  # one group here; an edit may make more, each with its own LR
+                group["lr"] = frac * group.setdefault("initial_lr", group["lr"])
 
             # --- rollout ---
             for step in range(args.num_steps):

@@ -242,7 +242,7 @@ def ppo_update(policy: Callable[[torch.Tensor], torch.Tensor], critic: nn.Module
     """CleanRL ppo.py's update on the flat rollout `batch`: --update-epochs epochs of shuffled minibatches, one
     gradient step each (norm clipped) on everything `optimizer` holds; stops early above --target-kl. `policy`:
     observations -> logits. Returns the last minibatch's loss and the update's scalars under CleanRL's names."""
-    params = optimizer.param_groups[0]["params"]
+    params = [param for group in optimizer.param_groups for param in group["params"]]
     batch_size = len(batch["obs"])
     minibatch_size = batch_size // args.num_minibatches
     b_inds = np.arange(batch_size)
@@ -296,7 +296,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
     actor = make_actor(obs_dim, num_actions, args.hidden_size).to(device)
     critic = make_critic(obs_dim).to(device)
     optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
-    params = optimizer.param_groups[0]["params"]
+    params = [param for group in optimizer.param_groups for param in group["params"]]
     n_params = count_parameters(actor, critic)
     say(f"PPO: {n_params} parameters (actor + critic)")
     episodes = EvaluationEpisodes(args.env_id, args.eval_episodes, args.seed, discretize) if args.eval_every else None
@@ -328,7 +328,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         global_step, start_update = checkpoint["global_step"], checkpoint["updates_done"] + 1
         actor.load_state_dict(checkpoint["actor"])
         critic.load_state_dict(checkpoint["critic"])
-        optimizer.load_state_dict(checkpoint["optimizer"])
+        checkpoints.load_optimizer(optimizer, checkpoint["optimizer"])
 
     for update in range(start_update, total_updates + 1):
         if args.lr_schedule == "global":
@@ -339,7 +339,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
                 optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
         else:
             frac = 1.0
-        optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+        for group in optimizer.param_groups:  # one group here; an edit may make more, each with its own LR
+            group["lr"] = frac * group.setdefault("initial_lr", group["lr"])
 
         # --- rollout ---
         for step in range(args.num_steps):

@@ -119,3 +119,13 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "") -> 
         fail(f"{path} is not a {script} checkpoint")
     checkpoint["path"] = path
     return checkpoint
+
+
+def load_optimizer(optimizer: torch.optim.Optimizer, state: dict) -> None:
+    """`optimizer.load_state_dict(state)`, keeping each group's "initial_lr" (the base the scripts' LR schedules
+    scale, torch's name for it) from the freshly made `optimizer` where `state` was saved before it was set, as
+    in a checkpoint written before the first update of an LR cycle or by an older version of a script."""
+    initial = [group.get("initial_lr", group["lr"]) for group in optimizer.param_groups]
+    optimizer.load_state_dict(state)
+    for group, lr in zip(optimizer.param_groups, initial):
+        group.setdefault("initial_lr", lr)

@@ -506,6 +506,28 @@ def untouched_random_streams() -> Iterator[None]:
             random.setstate(python_state)
 
 
+class ActState:
+    """What an act() that keeps state between calls changes: the global names of its module and the actor's plain
+    attributes (compared by identity), so that the acting check can name it and undo what its own calls set."""
+
+    def __init__(self, act: Callable, actor: nn.Module):
+        self.namespace = getattr(act, "__globals__", {})
+        self.globals, self.actor, self.attributes = dict(self.namespace), actor, dict(vars(actor))
+
+    def changes(self) -> str:
+        """The names that act() bound anew, or '' if none."""
+        def rebound(before: dict, now: dict, prefix: str) -> list[str]:
+            return [prefix + name for name in sorted(before.keys() | now.keys())  # (not Python's own __names__)
+                    if before.get(name, ActState) is not now.get(name, ActState) and not name.startswith("__")]
+        names = rebound(self.globals, self.namespace, "global ") + rebound(self.attributes, vars(self.actor), "actor.")
+        return ("it sets " + ", ".join(names)) if names else ""
+
+    def restore_globals(self) -> None:
+        for name in [name for name in self.namespace if name not in self.globals]:
+            del self.namespace[name]
+        self.namespace.update(self.globals)
+
+
 class FastPaths:
     """Which fast paths are on, and their run-time checks against the script's section 1 (float64 copies).
 
@@ -562,9 +584,16 @@ class FastPaths:
             obs = np.tile(obs, (-(-CHECK_ROWS // max(len(obs), 1)), 1))
             with untouched_random_streams():
                 torch.manual_seed(CHECK_SEED + step)
-                streams = numpy_and_python_streams()
+                streams, before = numpy_and_python_streams(), ActState(act, twin)
                 try:
-                    reference = torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64)
+                    # twice: an act() that keeps state between calls (sticky actions, correlated noise) shows in
+                    # its second call, if not already in what it sets
+                    reference = [torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64) for _ in range(2)]
+                    kept = before.changes()
+                    if kept:
+                        self.switch_off("acting", f"act() keeps state between calls ({kept}), while the numpy acting "
+                                        "path draws every action afresh", step)
+                        return definition
                     if numpy_and_python_streams() != streams:
                         self.switch_off("acting", "act() draws from numpy's or Python's global random numbers, which "
                                         "the numpy acting path (torch's Gaussian noise only) does not", step)
@@ -574,11 +603,19 @@ class FastPaths:
                                     " the check needs act to keep the observation's dtype (torch.as_tensor(obs), not"
                                     " torch.Tensor(obs))", step)
                     return definition
+                finally:
+                    before.restore_globals()  # the check's calls leave nothing behind for the run's own act()
                 torch.manual_seed(CHECK_SEED + step)
-                fast = torch.as_tensor(numpy_gaussian_sampler(self.numpy_policy(twin))(obs), dtype=torch.float64)
-            if fast.shape != reference.shape:
-                raise ValueError(f"actions of shape {tuple(fast.shape)} instead of {tuple(reference.shape)}")
-            error = relative_error([fast], [reference])
+                sampler = numpy_gaussian_sampler(self.numpy_policy(twin))
+                fast = [torch.as_tensor(sampler(obs), dtype=torch.float64) for _ in range(2)]
+            if fast[0].shape != reference[0].shape:
+                raise ValueError(f"actions of shape {tuple(fast[0].shape)} instead of {tuple(reference[0].shape)}")
+            error = relative_error(fast, reference)
+            if not error <= FAST_PATH_TOLERANCE and relative_error(fast[:1], reference[:1]) <= FAST_PATH_TOLERANCE:
+                self.switch_off("acting", "act() keeps state between calls (its second call on the same observations "
+                                f"draws otherwise than the numpy acting path, max relative error {error:.1e}), while "
+                                "the numpy acting path draws every action afresh", step)
+                return definition
         except Exception as exc:  # an edit the fast path cannot follow (another shape, another net): a failed check
             self.switch_off("acting", f"the numpy acting path fails on this actor ({describe(exc)})", step)
             return definition
@@ -642,7 +679,7 @@ class FastPaths:
                 if what is None:
                     what = self.optimizer_disagreement(optimizer_step, optimizer, reference, args)
         except Exception as exc:
-            self.switch_off("gradients", f"the hand-written update fails on these nets ({describe(exc)})", step)
+            self.switch_off("gradients", f"the hand-written update cannot follow this edit ({describe(exc)})", step)
             return
         finally:
             self.check_seconds += time.perf_counter() - start

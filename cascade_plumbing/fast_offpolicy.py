@@ -38,7 +38,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from .fast import describe, untouched_random_streams
+from .fast import ActState, describe, untouched_random_streams
 from .offpolicy import step_with_gradients
 
 # A check covers the first update with each new set of optimizers and the first complete one after it (one that
@@ -667,15 +667,30 @@ class OffPolicyFastPath:
             twin = copy.deepcopy(actor).double()
             rows = np.repeat(obs, CHECK_ROWS, axis=0).astype(np.float64)
             with float64_by_default():
-                with untouched_random_streams(), torch.inference_mode():  # the script's draws
-                    reference = definition(twin, torch.as_tensor(rows), *extra).detach().numpy()
+                # twice: an explore that keeps state between calls (Ornstein-Uhlenbeck noise, sticky actions) shows
+                # in its second call, if not already in the names it binds (which the check then undoes)
+                before = ActState(definition, twin)
+                try:
+                    with untouched_random_streams(), torch.inference_mode():  # the script's draws
+                        reference = [definition(twin, torch.as_tensor(rows), *extra).detach().numpy()
+                                     for _ in range(2)]
+                    kept = before.changes()
+                finally:
+                    before.restore_globals()
+                if kept:
+                    return f"explore keeps state between calls ({kept}), while the numpy acting path draws afresh"
                 with untouched_random_streams():  # the same draws again
-                    fast = self.fast_explore(twin, rows, *extra)
-            if fast.shape != reference.shape:
-                return f"the numpy acting path gives actions of shape {fast.shape}, explore {reference.shape}"
-            error = float(np.abs(fast - reference).max() / max(np.abs(reference).max(), 1e-30))
+                    fast = [self.fast_explore(twin, rows, *extra) for _ in range(2)]
+            if fast[0].shape != reference[0].shape:
+                return f"the numpy acting path gives actions of shape {fast[0].shape}, explore {reference[0].shape}"
+            errors = [float(np.abs(f - r).max() / max(np.abs(r).max(), 1e-30)) for f, r in zip(fast, reference)]
+            error = max(errors)
+            if not errors[0] <= TOLERANCE:
+                return f"the numpy acting path's actions differ from explore's (max relative error {errors[0]:.1e})"
             if not error <= TOLERANCE:
-                return f"the numpy acting path's actions differ from explore's (max relative error {error:.1e})"
+                return ("explore keeps state between calls (its second call on the same observations draws otherwise "
+                        f"than the numpy acting path, max relative error {error:.1e}), while the numpy acting path "
+                        "draws afresh")
             self.checks += 1
             self.worst = max(self.worst, error)
             return None

@@ -76,7 +76,7 @@ def log_ppo_update(writer: Any, global_step: int, optimizer: torch.optim.Optimiz
                    old_approx_kl: torch.Tensor, approx_kl: torch.Tensor, ratios: torch.Tensor, b_values: torch.Tensor,
                    b_returns: torch.Tensor, clip_coef: float, fast: Any) -> None:
     """CleanRL's scalars of one update (ppo_continuous_action.py's names; the losses from the epoch's last
-    minibatch's `parts`) and the state of the fast paths (`fast`: cascade_plumbing.fast.FastPaths)."""
+    minibatch's `parts`, and any other scalar part as `losses/<name>`) and the state of the fast paths (`fast`: cascade_plumbing.fast.FastPaths)."""
     write = writer.add_scalar
     y_pred, y_true = b_values.cpu().numpy(), b_returns.cpu().numpy()
     var_y = np.var(y_true)
@@ -89,6 +89,9 @@ def log_ppo_update(writer: Any, global_step: int, optimizer: torch.optim.Optimiz
     write("losses/approx_kl", approx_kl.item(), global_step)
     write("losses/clipfrac", ((ratios - 1.0).abs() > clip_coef).float().mean().item(), global_step)
     write("losses/explained_variance", explained_var, global_step)
+    for key, value in parts.items():  # a scalar part that an edit added to ppo_loss's dict, under its own name
+        if key not in ("value_loss", "policy_loss", "entropy") and value.numel() == 1:
+            write(f"losses/{key}", value.item(), global_step)
     write("charts/fast_acting", float(fast.acting), global_step)
     write("charts/fast_gradients", float(fast.gradients), global_step)
     write("charts/fast_path_check_seconds", fast.check_seconds, global_step)

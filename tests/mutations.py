@@ -94,7 +94,8 @@ MUTATIONS = [
              "return action_distribution(mean, log_std).sample()", "return mean.clone()", LOOP_TESTS),
     # the PPO baseline of Fig. 2 and, with a cyclic LR, of Fig. 3
     Mutation("baseline: Adam kept across LR cycles", "ppo_baseline.py",
-             "optimizer = make_optimizer([flat_params], args.learning_rate)  # a new cycle: fresh Adam moments", "pass",
+             "# a new cycle: fresh Adam moments\n                optimizer = make_optimizer(actor, critic, flat_params, args.learning_rate)",
+             "# a new cycle: fresh Adam moments\n                pass",
              ("tests/test_papers_code.py::test_cyclic_baseline_restarts_adam_every_cycle",)),
     Mutation("baseline: the LR cycle never restarts", "ppo_baseline.py",
              "frac = 1.0 - ((update - 1) % updates_per_cycle) / updates_per_cycle",
@@ -147,8 +148,8 @@ MUTATIONS = [
              "frac = 1.0 - (iteration * updates_per_iteration + update - 1.0) / total_updates",
              ("tests/test_discrete.py::test_learning_rate_schedules",)),
     Mutation("ddpg: the critic's learning rate not annealed", DDPG,
-             'q_optimizer.param_groups[0]["lr"] = actor_optimizer.param_groups[0]["lr"] = lr_now',
-             'actor_optimizer.param_groups[0]["lr"] = lr_now', (OPTIMIZER_RATES_TEST,)),
+             "for group in (*q_optimizer.param_groups, *actor_optimizer.param_groups):",
+             "for group in actor_optimizer.param_groups:", (OPTIMIZER_RATES_TEST,)),
     Mutation("sac: the actor at --q-lr", SAC, "actor_optimizer = make_adam(list(actor.parameters()), args.policy_lr)",
              "actor_optimizer = make_adam(list(actor.parameters()), args.q_lr)", (OPTIMIZER_RATES_TEST,)),
     # SAC only
@@ -228,8 +229,8 @@ MUTATIONS += [
     Mutation("ddpg: actions not clipped to the bounds", DDPG, "return torch.maximum(torch.minimum(action, high), low)",
              "return action", (EXPLORATION_TEST,)),
     Mutation("ddpg: the learning rate annealed over the whole run", DDPG,
-             "lr_now = (1.0 - step_in_iteration / args.k) * args.learning_rate",
-             "lr_now = (1.0 - (global_step - 1) / (args.n * args.k)) * args.learning_rate",
+             "frac = 1.0 - step_in_iteration / args.k",
+             "frac = 1.0 - (global_step - 1) / (args.n * args.k)",
              ("tests/test_sac_ddpg.py::test_hopper_smoke_run_scalars_checkpoints_resume_and_evaluate",)),
 ]
 MUTATIONS += [Mutation(f"{label} loop: {name}", script, old, new, OFF_POLICY_LOOP_TESTS)
@@ -390,6 +391,22 @@ MUTATIONS += [
     Mutation("flagship: a resume passes the saved frozen count through freeze_below again", FLAGSHIP,
              'actor.num_frozen = checkpoint["num_frozen"]', 'actor.freeze_below(checkpoint["num_frozen"])',
              ("tests/test_hacking.py::test_a_resumed_actor_keeps_its_saved_frozen_count_through_an_edited_freeze_below",)),
+    # a researcher's probe (2026-12-05): state kept by act() between calls, and each parameter group's own LR
+    Mutation("fast: act's rebound names go unnamed", FAST, "kept = before.changes()", 'kept = ""',
+             ("tests/test_hacking.py::test_an_act_that_keeps_state_between_calls_switches_acting_off",
+              "tests/test_fast_offpolicy.py::test_an_explore_that_keeps_state_between_calls_switches_acting_off")),
+    Mutation("fast: the acting check's calls leave their state behind", FAST,
+             "    def restore_globals(self) -> None:\n", "    def restore_globals(self) -> None:\n        return\n",
+             ("tests/test_hacking.py::test_an_act_that_keeps_state_between_calls_switches_acting_off",)),
+    Mutation("fast: the acting check calls act once", FAST,
+             "if not error <= FAST_PATH_TOLERANCE and relative_error(fast[:1], reference[:1]) <= FAST_PATH_TOLERANCE:",
+             "if False:", ("tests/test_hacking.py::test_the_acting_check_sees_state_kept_inside_a_container",)),
+    Mutation("flagship: every parameter group at --learning-rate", FLAGSHIP,
+             'group["lr"] = frac * group.setdefault("initial_lr", group["lr"])  # with its own initial LR',
+             'group["lr"] = frac * args.learning_rate', (HACKING_TEST,)),
+    Mutation("resume: a group's initial LR from the annealed saved rate", "cascade_plumbing/checkpoints.py",
+             '        group.setdefault("initial_lr", lr)\n', "        pass\n",
+             ("tests/test_checkpoints.py::test_a_restored_optimizer_keeps_each_groups_initial_learning_rate",)),
     # the off-policy fast path (cascade_plumbing/fast_offpolicy.py): its math, and its run-time check
     *[Mutation(f"fast off-policy: {name}", FAST_OFFPOLICY, old, new, ("tests/test_fast_offpolicy.py",)) for name, old, new in (
         ("dC/dlogit with S_i for S_(i-1)", "partial = cumsum0(weighted[:-1])", "partial = cumsum0(weighted[1:])"),
@@ -411,6 +428,8 @@ MUTATIONS += [
          "with torch.no_grad():  # the same"),
         ("checks at a fixed phase", "return self.spacing.randint(CHECK_EVERY // 2, 3 * CHECK_EVERY // 2)",
          "return CHECK_EVERY"),
+        ("explore's second call not compared", "if not error <= TOLERANCE:\n                return (\"explore keeps",
+         "if False:\n                return (\"explore keeps"),
         ("numpy acting keeps the views of replaced weights",
          "or any(p.data_ptr() != pointer for p, pointer in cached[4])):", "or False):"),
     )],

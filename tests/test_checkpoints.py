@@ -416,3 +416,30 @@ cpc.main()
     assert cpc.load_checkpoint(str(run_dir / "iteration_1.pt"))["iteration"] == 1
     assert cpc.load_checkpoint(str(run_dir))["global_step"] == 2048
     assert not [f for f in os.listdir(run_dir) if f.endswith(".tmp")]
+
+
+def test_a_restored_optimizer_keeps_each_groups_initial_learning_rate():
+    """The LR schedules scale each group's "initial_lr": a checkpoint's optimizer state carries it; one saved without
+    it (an older checkpoint, or one saved before the first update) takes it from the freshly made optimizer, not
+    from the saved, already annealed rate."""
+    from cascade_plumbing.checkpoints import load_optimizer
+
+    def fresh():
+        a, b = torch.nn.Parameter(torch.zeros(2)), torch.nn.Parameter(torch.zeros(3))
+        return torch.optim.Adam([{"params": [a], "lr": 1e-3}, {"params": [b]}], lr=3e-4)
+
+    saved = fresh()
+    for group, rate in zip(saved.param_groups, (5e-4, 1.5e-4)):  # half way through a linear schedule
+        group["lr"] = rate
+    restored = fresh()
+    load_optimizer(restored, saved.state_dict())
+    assert [(g["lr"], g["initial_lr"]) for g in restored.param_groups] == [(5e-4, 1e-3), (1.5e-4, 3e-4)]
+    for group in saved.param_groups:
+        group["initial_lr"] = 2 * group["lr"]
+    restored = fresh()
+    load_optimizer(restored, saved.state_dict())
+    assert [(g["lr"], g["initial_lr"]) for g in restored.param_groups] == [(5e-4, 1e-3), (1.5e-4, 3e-4)]
+    for group in restored.param_groups:
+        group["initial_lr"] = 7e-4  # the saved value wins over the fresh one
+    load_optimizer(restored, saved.state_dict())
+    assert [g["initial_lr"] for g in restored.param_groups] == [1e-3, 3e-4]

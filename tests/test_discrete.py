@@ -192,6 +192,20 @@ def test_learning_rate_schedules(schedule, expected, tmp_path):
     np.testing.assert_allclose([v for _, v in scalars["charts/learning_rate"]], expected, rtol=1e-5)
 
 
+@pytest.mark.parametrize("module", [cpd, pbd])
+def test_each_parameter_group_follows_the_schedule_from_its_own_learning_rate(module, tmp_path, monkeypatch):
+    """An optimizer edited into groups with their own learning rates (here the first parameter at 4x): the schedule
+    scales each group's own rate (it had set every group to --learning-rate); the log shows the first group's."""
+    monkeypatch.setattr(module, "make_optimizer", lambda params, learning_rate: torch.optim.Adam(
+        [{"params": params[:1], "lr": 4 * learning_rate}, {"params": params[1:]}], lr=learning_rate, eps=1e-5))
+    budget = dict(n=2, k=1024) if module is cpd else dict(total_timesteps=2048, lr_schedule="global")
+    result = module.train(module.Args(env_id="CartPole-v1", eval_every=0, quiet=True, track_dir=str(tmp_path),
+                                      num_steps=128, num_minibatches=4, update_epochs=1, **budget))  # 512-step updates
+    logged = [v for _, v in read_scalars(result["run_dir"])["charts/learning_rate"]]
+    expected = [1e-3, 5e-4] * 2 if module is cpd else [1e-3, 7.5e-4, 5e-4, 2.5e-4]
+    np.testing.assert_allclose(logged, expected, rtol=1e-5)
+
+
 def test_cascade_discretized_hopper_run_writes_expected_scalars(tmp_path, capsys):
     code, out, error = cli_in_process(capsys, "cascade_ppo_discrete.py", "--env-id", "Hopper-v4", "--n", "3", "--k",
                                       "1024", "--update-epochs", "2", "--eval-every", "1024", "--eval-episodes", "2",

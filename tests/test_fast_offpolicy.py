@@ -455,6 +455,59 @@ def test_check_catches_an_edit_of_explore(script):
     np.testing.assert_array_equal(action, expected)
 
 
+ou_noise = None  # the Ornstein-Uhlenbeck state of `explore_ou`, a global of this module as it would be of a script
+
+
+def explore_ou(actor, obs, noise):
+    """DDPG's classic exploration: the action plus Ornstein-Uhlenbeck noise, kept in a global between steps."""
+    global ou_noise
+    action, _, _ = actor(obs)
+    step = torch.randn(action.shape, device=action.device)
+    ou_noise = step * noise if ou_noise is None else ou_noise - 0.15 * ou_noise + noise * step
+    return cd.add_noise(action + ou_noise * actor.action_scale, actor, 0.0)
+
+
+def explore_sticky(actor, obs, noise):
+    """The previous step's action again, every other call, kept on the actor."""
+    previous = getattr(actor, "previous_action", None)
+    actor.previous_action = None if previous is not None else cd.explore(actor, obs, noise)
+    return previous if previous is not None else actor.previous_action
+
+
+class StickyMemory:
+    """The same sticky actions, kept inside an object (no name is bound anew: only the second call tells)."""
+    previous = {}
+
+    @classmethod
+    def explore(cls, actor, obs, noise):
+        if "action" in cls.previous:
+            return cls.previous.pop("action")
+        cls.previous["action"] = cd.explore(actor, obs, noise)
+        return cls.previous["action"]
+
+
+@pytest.mark.parametrize("edit,expected", [(explore_ou, "explore keeps state between calls (it sets global ou_noise)"),
+                                           (explore_sticky, "(it sets actor.previous_action)"),
+                                           (StickyMemory.explore, "(its second call on the same observations")])
+def test_an_explore_that_keeps_state_between_calls_switches_acting_off(edit, expected):
+    """A researcher's probe (2026-12-05, of the PPO scripts' act): the check called explore once, on a fresh copy of
+    the actor, so state kept between calls (OU noise, sticky actions) went unseen and the numpy path's white noise
+    was used. Now explore is called twice; what it binds anew is named and undone, and the run acts through it."""
+    global ou_noise
+    ou_noise = None
+    StickyMemory.previous.clear()
+    actor, _, fast, extra = acting_setup(("ddpg", 2, True, "tanh", 0.1))
+    messages = []
+    path = fo.OffPolicyFastPath(True, fast, announce=lambda message, step: messages.append(message))
+    obs = np.ones((1, OBS_DIM), np.float32)
+    torch.manual_seed(4)
+    path.act(edit, actor, obs, *extra, step=7)
+    assert not path.acting and len(messages) == 1 and expected in messages[0], messages
+    assert "explore keeps state between calls" in messages[0]
+    if edit is explore_ou:
+        assert ou_noise is not None and ou_noise.shape == (1, 3)  # the run's own first call, not the check's rows
+
+
 def test_acting_checks_at_each_new_net_and_about_every_check_every_steps(monkeypatch):
     monkeypatch.setattr(fo, "CHECK_EVERY", 4)
     actor, explore, fast, extra = acting_setup(("ddpg", 1, True, "tanh", 0.1))

@@ -117,7 +117,7 @@ def test_shared_buffer_keeps_values_and_clipping_matches_torch():
     for p, rp in zip(params, reference_params):
         torch.testing.assert_close(p.grad, rp.grad)
     # an optimizer step on the buffer moves the named parameters
-    optimizer = pb.make_optimizer([flat], 1e-2)
+    optimizer = pb.make_optimizer(None, None, flat, 1e-2)
     optimizer.step()
     assert not torch.equal(params[0], before[0])
 
@@ -209,12 +209,12 @@ def test_adam_step_equals_torch_optimizer_step_bit_for_bit(module):
     def run(step, restore_after=None):
         flat = torch.nn.Parameter(start.clone())
         flat.grad = torch.zeros_like(flat)
-        optimizer = module.make_optimizer([flat], 3e-4)
+        optimizer = module.make_optimizer(None, None, flat, 3e-4)
         with torch.inference_mode():  # as in training
             for i, grad in enumerate(grads):
                 if i == restore_after:  # a fresh optimizer from the saved state, as a resumed run makes
                     saved = optimizer.state_dict()
-                    optimizer = module.make_optimizer([flat], 3e-4)
+                    optimizer = module.make_optimizer(None, None, flat, 3e-4)
                     optimizer.load_state_dict(saved)
                 optimizer.param_groups[0]["lr"] = 3e-4 * (1 - i / len(grads))
                 flat.grad.copy_(grad)

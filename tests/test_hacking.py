@@ -104,8 +104,8 @@ EDITS = {
     "kl penalty": [("loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef",
                     "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef"
                     " + 0.1 * ((ratio - 1) - logratio).mean()")],
-    "adamw": [("return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)",
-               "return torch.optim.AdamW(params, lr=learning_rate, eps=1e-5, weight_decay=0.1, fused=True)")],
+    "adamw": [("return torch.optim.Adam([flat_params], lr=learning_rate, eps=1e-5, fused=True)",
+               "return torch.optim.AdamW([flat_params], lr=learning_rate, eps=1e-5, weight_decay=0.1, fused=True)")],
     "no gradient clip": [("    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n", "")],
     "truncated noise": [("return action_distribution(mean, log_std).sample()",
                          "return mean + log_std.exp() * torch.randn_like(mean).clamp(-2.5, 2.5)")],
@@ -142,8 +142,8 @@ EDITS = {
     "gradient hook (baseline)": [("        self.log_std = nn.Parameter(torch.zeros(1, act_dim))\n",
                                   "        self.log_std = nn.Parameter(torch.zeros(1, act_dim))\n"
                                   "        self.log_std.register_hook(lambda g: g.clamp(-1e-3, 1e-3))\n")],
-    "optimizer step hook": [("    return torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)",
-                             "    optimizer = torch.optim.Adam(params, lr=learning_rate, eps=1e-5, fused=True)\n"
+    "optimizer step hook": [("    return torch.optim.Adam([flat_params], lr=learning_rate, eps=1e-5, fused=True)",
+                             "    optimizer = torch.optim.Adam([flat_params], lr=learning_rate, eps=1e-5, fused=True)\n"
                              "    optimizer.register_step_post_hook(lambda opt, args, kwargs: [\n"
                              "        p.data.mul_(1 - group['lr'] * 0.1) for group in opt.param_groups for p in group['params']])\n"
                              "    return optimizer")],
@@ -151,6 +151,11 @@ EDITS = {
                             "        if np.random.rand() < 0.1:\n"
                             "            return np.random.uniform(-1, 1, (len(obs), actor.act_dim)).astype(np.float32)\n"
                             "        mean, log_std, _, _ = actor(torch.as_tensor(obs, device=actor.log_std.device))")],
+    # a researcher's probe (2026-12-05): parameter groups with their own learning rates, which the LR schedule had
+    # overwritten with --learning-rate at every update (in --autograd runs too)
+    "critic learning rate": [("return torch.optim.Adam([flat_params], lr=learning_rate, eps=1e-5, fused=True)",
+                              'return torch.optim.Adam([{"params": actor.parameters()}, {"params": '
+                              'critic.parameters(), "lr": 1e-3}], lr=learning_rate, eps=1e-5)')],
     # logged only (--ent-coef 0): the logged entropy must be section 1's
     "entropy per dimension": [("entropy_loss = dist.entropy().sum(1).mean()", "entropy_loss = dist.entropy().mean()")],
 }
@@ -177,6 +182,7 @@ CASES = [  # script, edit, the parts the warnings must name (in order)
         ("no gradient clip", ["moves the parameters otherwise than optimizer_step"]),
         ("truncated noise", ["draws other actions than act()"]),
         ("entropy per dimension", ["computes another 'entropy' than autograd_gradients"]),
+        ("critic learning rate", ["the hand-written update cannot follow this edit"]),
     ]],
 ]
 LOGGED_ONLY = {"entropy per dimension": "losses/entropy"}  # edits that change a logged value, not the parameters
@@ -342,14 +348,11 @@ def test_a_non_finite_loss_of_section_1_stops_the_run_as_autograd_would(tmp_path
 
 @pytest.mark.parametrize("script", ["cascade_ppo_continuous.py", "ppo_baseline.py"])
 def test_a_new_part_of_the_loss_can_be_logged(script, tmp_path):
-    """A diagnostic added to ppo_loss's parts and logged in the loop (here CleanRL's k3 estimate of the KL) is
-    logged as section 1 computes it: the hand-written update does not compute it, so the check hands the run
-    to autograd_gradients before the loop reads it."""
-    module = edited_copy(script, [
-        ('"ratio": ratio}', '"ratio": ratio, "k3": ((ratio - 1) - logratio).mean()}'),
-        ("run.update_done(global_step, optimizer, parts,",  # one line, whatever the loop's indentation
-         'run.writer.add_scalar("losses/k3", parts["k3"].item(), global_step); '
-         "run.update_done(global_step, optimizer, parts,")], tmp_path)
+    """A diagnostic added to ppo_loss's parts (here CleanRL's k3 estimate of the KL) is logged, as `losses/k3`, as
+    section 1 computes it: the hand-written update does not compute it, so the check hands the run to
+    autograd_gradients before the loop reads it."""
+    module = edited_copy(script, [('"ratio": ratio}', '"ratio": ratio, "k3": ((ratio - 1) - logratio).mean()}')],
+                         tmp_path)
     _, messages = train_copy(module, script, tmp_path / "fast")
     assert len(messages) == 1 and "returns a part 'k3'" in messages[0], messages
     train_copy(module, script, tmp_path / "autograd", autograd=True)
@@ -466,3 +469,63 @@ def test_an_act_drawing_one_numpy_number_mid_stream_switches_acting_off():
     fast = cpc.make_fast_paths(cpc.Args(), torch.device("cpu"))
     fast.acting_function(act, actor, np.zeros((2, 3), np.float32), 0, 4)
     assert not fast.acting and "act() draws from numpy's or Python's global random numbers" in fast.messages[0]
+
+
+STATEFUL_ACTS = {  # act() edits that keep state between calls, on the actor or in a global of the script
+    "sticky actions": [("        return sample_action(mean, log_std).cpu().numpy()\n",
+                        "        action = sample_action(mean, log_std).cpu().numpy()\n"
+                        "        previous = getattr(actor, 'previous_action', None)\n"
+                        "        if previous is not None and previous.shape == action.shape:\n"
+                        "            action = np.where(np.arange(len(action))[:, None] % 2 == 0, previous, action)\n"
+                        "        actor.previous_action = action\n"
+                        "        return action\n")],
+    "correlated noise": [("def act(actor: CascadeActor, obs: np.ndarray) -> np.ndarray:\n",
+                          "previous_noise = None\n\n\ndef act(actor: CascadeActor, obs: np.ndarray) -> np.ndarray:\n"
+                          "    global previous_noise\n"),
+                         ("        return sample_action(mean, log_std).cpu().numpy()\n",
+                          "        noise = torch.randn_like(mean)\n"
+                          "        if previous_noise is not None:\n"
+                          "            noise = 0.8 * previous_noise + 0.6 * noise\n"
+                          "        previous_noise = noise\n"
+                          "        return (mean + log_std.exp() * noise).cpu().numpy()\n")],
+}
+
+
+@pytest.mark.parametrize("edit", list(STATEFUL_ACTS))
+def test_an_act_that_keeps_state_between_calls_switches_acting_off(edit, unedited, tmp_path, capsys):
+    """A researcher's probe (2026-12-05): the acting check called act() once, on a fresh copy of the actor, so an
+    act() keeping state on the actor was never seen (the run acted as the unedited script), and one keeping it in
+    a global was seen late and kept the check's batch (a crash at the next step). The check now names the state,
+    leaves nothing behind, and the run acts through act() from its first step, as --autograd does."""
+    module = edited_copy("cascade_ppo_continuous.py", STATEFUL_ACTS[edit], tmp_path)
+    capsys.readouterr()
+    switched, messages = train_copy(module, "cascade_ppo_continuous.py", tmp_path / "fast")
+    assert "Traceback" not in capsys.readouterr().err
+    assert len(messages) == 1 and "fast path check at global_step=0" in messages[0], messages
+    named = {"sticky actions": "it sets actor.previous_action", "correlated noise": "it sets global previous_noise"}
+    assert f"act() keeps state between calls ({named[edit]})" in messages[0], messages[0]
+    if hasattr(module, "previous_noise"):
+        module.previous_noise = None  # the next run starts afresh, as a new process would
+    edited, _ = train_copy(module, "cascade_ppo_continuous.py", tmp_path / "autograd", autograd=True)
+    assert_close_parameters(switched, edited, ROUNDING)
+    effect = max((edited[k] - unedited["cascade_ppo_continuous.py"][k]).abs().max().item() for k in edited)
+    assert effect > 3 * ROUNDING, effect
+
+
+def test_the_acting_check_sees_state_kept_inside_a_container():
+    """State that act() keeps inside a mutable object (not a rebinding the check can name) shows in its second call
+    on the same observations, which then differs from the numpy path's."""
+    actor = cpc.CascadeActor(3, 2, 4, 2, 0.5)
+    actor.add_base_net()
+    memory = {}
+
+    def act(actor, obs):
+        action = cpc.act(actor, obs)
+        if "previous" in memory:
+            action = memory["previous"]
+        memory["previous"] = action
+        return action
+
+    fast = cpc.make_fast_paths(cpc.Args(), torch.device("cpu"))
+    fast.acting_function(act, actor, np.zeros((2, 3), np.float32), 0, 4)
+    assert not fast.acting and "act() keeps state between calls (its second call" in fast.messages[0]

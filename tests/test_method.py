@@ -318,7 +318,8 @@ def test_one_whole_update_matches_the_references(module, autograd, monkeypatch, 
                         or recorded[-1])
     monkeypatch.setattr(module, "share_one_buffer", lambda params: initial.append(
         [p.detach().clone() for p in params]) or share_one_buffer(params))
-    monkeypatch.setattr(module, "make_optimizer", lambda params, learning_rate: torch.optim.SGD(params, learning_rate))
+    monkeypatch.setattr(module, "make_optimizer",
+                        lambda actor, critic, flat_params, learning_rate: torch.optim.SGD([flat_params], learning_rate))
     budget = dict(n=2, k=256) if module is cpc else dict(total_timesteps=256)
     args = module.Args(env_id="Hopper-v4", num_steps=256, num_minibatches=1, update_epochs=1, learning_rate=0.5,
                        eval_every=0, checkpoint_every=0, autograd=autograd, quiet=True, track_dir=str(tmp_path),

@@ -289,6 +289,19 @@ def test_each_optimizer_runs_at_its_learning_rate(algo, tmp_path):
         assert lr == {"actor_optimizer": end, "q_optimizer": end}
 
 
+def test_ddpg_anneals_each_parameter_group_from_its_own_learning_rate(tmp_path, monkeypatch):
+    """Optimizers edited into groups with their own learning rates (here the first parameter at 3x): the annealing
+    scales each group's own rate (it had set group 0 to --learning-rate and left the others unannealed)."""
+    mod = SCRIPTS["ddpg"]
+    monkeypatch.setattr(mod, "make_adam", lambda params, lr, eps: torch.optim.Adam(
+        [{"params": params[:1], "lr": 3 * lr}, {"params": params[1:]}], lr=lr, eps=eps))
+    seen, _, _, _, _ = run_with_hook(mod, tmp_path, learning_rate=6e-4)
+    end = 6e-4 * (1 - (TINY["k"] - 1) / TINY["k"])
+    for name in ("actor_optimizer", "q_optimizer"):
+        rates = [group["lr"] for group in seen[-1][name].param_groups]
+        assert rates == [pytest.approx(3 * end), pytest.approx(end)], (name, rates)
+
+
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
 def test_keep_buffer_and_reset_critic_ablations(algo, tmp_path):
     mod = SCRIPTS[algo]
