@@ -368,7 +368,8 @@ def ddpg_update(args: Args, step_in_iteration: int, batch: tuple[torch.Tensor, .
         next_q_value = b_rewards + (1 - b_dones) * args.gamma * qf_target(b_next_obs, next_actions)[0]
     qf1_a_values = qf(b_obs, b_actions)[0]
     qf1_loss = F.mse_loss(qf1_a_values, next_q_value)
-    minimize(q_optimizer, qf1_loss)  # zero_grad(); backward(); step(), bit for bit (cascade_plumbing.offpolicy)
+    minimize(q_optimizer, qf1_loss)  # zero_grad(); backward(); step(), bit for bit
+    # (cascade_plumbing.offpolicy; it leaves no .grad: to clip or log gradients, write those three lines here)
     out = {"qf1_a_values": qf1_a_values, "qf1_loss": qf1_loss}
 
     if step_in_iteration % args.policy_frequency == 0:  # counted from 0 with each net (the paper's code)

@@ -293,7 +293,8 @@ class CascadeActor(nn.Module):
 
     def get_action(self, obs: torch.Tensor, generator: torch.Generator | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(sampled action in the env's bounds, its log-prob [B, 1], squashed mean action) of the whole cascade."""
+        """(sampled action in the env's bounds, its log-prob [B, 1], squashed mean action) of the whole cascade: the
+        policy that `explore`, `sac_update` and the evaluations act with."""
         mean, log_std, _, _ = self(obs)
         return squashed_sample(mean, log_std, self.action_scale, self.action_bias, generator)
 
@@ -379,7 +380,8 @@ def sac_update(args: Args, step_in_iteration: int, batch: tuple[torch.Tensor, ..
     qf1_loss = F.mse_loss(qf_a_values[0], next_q_value)
     qf2_loss = F.mse_loss(qf_a_values[1], next_q_value)
     qf_loss = qf1_loss + qf2_loss
-    minimize(q_optimizer, qf_loss)  # zero_grad(); backward(); step(), bit for bit (cascade_plumbing.offpolicy)
+    minimize(q_optimizer, qf_loss)  # zero_grad(); backward(); step(), bit for bit
+    # (cascade_plumbing.offpolicy; it leaves no .grad: to clip or log gradients, write those three lines here)
     out = {"qf_a_values": qf_a_values, "qf1_loss": qf1_loss, "qf2_loss": qf2_loss, "qf_loss": qf_loss}
 
     # TD3-style delay, compensated by as many updates; counted from 0 with each net, as the paper's
@@ -545,9 +547,8 @@ def full_policy(actor: CascadeActor, deterministic: bool) -> Policy:
     """The whole cascade: a sample of its squashed Gaussian, or with `deterministic` the squashed mean."""
 
     def act(x: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, log_std, fallback, _ = actor(x)
-        sample, _, mean_action = squashed_sample(mean, log_std, actor.action_scale, actor.action_bias, generator)
-        return (mean_action if deterministic else sample), fallback
+        sample, _, mean_action = actor.get_action(x, generator)  # as in training: an edit of get_action counts here
+        return (mean_action if deterministic else sample), actor(x)[2]  # and the fallbacks, for the log
 
     return act
 

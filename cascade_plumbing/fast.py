@@ -31,6 +31,7 @@ import functools
 import math
 import random
 import time
+import types
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -506,26 +507,82 @@ def untouched_random_streams() -> Iterator[None]:
             random.setstate(python_state)
 
 
-class ActState:
-    """What an act() that keeps state between calls changes: the global names of its module and the actor's plain
-    attributes (compared by identity), so that the acting check can name it and undo what its own calls set."""
+class KeptState:
+    """What a checked function (`act`, an update) changes that outlives its call, so that a check can name it and undo
+    what its own calls set: the global names of the function's module and the plain attributes of `objects` (the
+    actor, `args`), compared by identity, and the contents of the mutable globals that the function's own code names
+    (a noise process's object, a dict of running statistics), copied before the call and compared and put back in
+    place after it."""
 
-    def __init__(self, act: Callable, actor: nn.Module):
-        self.namespace = getattr(act, "__globals__", {})
-        self.globals, self.actor, self.attributes = dict(self.namespace), actor, dict(vars(actor))
+    def __init__(self, function: Callable, objects: dict[str, Any]):
+        self.namespace = getattr(function, "__globals__", {})
+        self.globals = dict(self.namespace)
+        self.objects = {label: (obj, dict(vars(obj))) for label, obj in objects.items() if hasattr(obj, "__dict__")}
+        code = getattr(function, "__code__", None)
+        self.contents: dict[str, tuple[Any, Any]] = {}
+        for name in code.co_names if code is not None else ():
+            value = self.namespace.get(name)
+            if isinstance(value, (dict, list, set, torch.Tensor, np.ndarray)) or (
+                    hasattr(value, "__dict__") and not callable(value) and not isinstance(value, types.ModuleType)):
+                try:
+                    self.contents[name] = (value, copy.deepcopy(value))
+                except Exception:  # (an object that cannot be copied: not watched)
+                    pass
 
     def changes(self) -> str:
-        """The names that act() bound anew, or '' if none."""
+        """What the function set, as 'it sets global x, args.tau', or '' if nothing."""
         def rebound(before: dict, now: dict, prefix: str) -> list[str]:
             return [prefix + name for name in sorted(before.keys() | now.keys())  # (not Python's own __names__)
-                    if before.get(name, ActState) is not now.get(name, ActState) and not name.startswith("__")]
-        names = rebound(self.globals, self.namespace, "global ") + rebound(self.attributes, vars(self.actor), "actor.")
+                    if before.get(name, KeptState) is not now.get(name, KeptState) and not name.startswith("__")]
+        names = rebound(self.globals, self.namespace, "global ")
+        for label, (obj, attributes) in self.objects.items():
+            names += rebound(attributes, vars(obj), f"{label}.")
+        names += [f"the contents of global {name}" for name, (value, saved) in self.contents.items()
+                  if f"global {name}" not in names and not same_contents(value, saved)]
         return ("it sets " + ", ".join(names)) if names else ""
 
-    def restore_globals(self) -> None:
+    def restore(self) -> None:
+        """Put back every global name, attribute and watched content as it was before the call."""
         for name in [name for name in self.namespace if name not in self.globals]:
             del self.namespace[name]
         self.namespace.update(self.globals)
+        for obj, attributes in self.objects.values():
+            vars(obj).clear()
+            vars(obj).update(attributes)
+        for value, saved in self.contents.values():
+            with contextlib.suppress(Exception), torch.no_grad():
+                if isinstance(value, (dict, set)):
+                    value.clear()
+                    value.update(copy.deepcopy(saved))
+                elif isinstance(value, list):
+                    value[:] = copy.deepcopy(saved)
+                elif isinstance(value, torch.Tensor):
+                    value.copy_(saved)
+                elif isinstance(value, np.ndarray):
+                    value[...] = saved
+                else:
+                    vars(value).clear()
+                    vars(value).update(copy.deepcopy(vars(saved)))
+
+
+def same_contents(a: Any, b: Any) -> bool:
+    """a and b hold the same values (tensors, arrays, containers and objects compared element by element); True
+    where that cannot be told."""
+    try:
+        if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+            return isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor) and a.shape == b.shape and bool(
+                torch.equal(a, b))
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            return bool(np.array_equal(a, b))
+        if isinstance(a, dict) and isinstance(b, dict):
+            return a.keys() == b.keys() and all(same_contents(a[key], b[key]) for key in a)
+        if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+            return len(a) == len(b) and all(same_contents(x, y) for x, y in zip(a, b))
+        if hasattr(a, "__dict__") and type(a) is type(b) and not callable(a):
+            return same_contents(vars(a), vars(b))
+        return bool(a == b)
+    except Exception:
+        return True
 
 
 class FastPaths:
@@ -584,7 +641,7 @@ class FastPaths:
             obs = np.tile(obs, (-(-CHECK_ROWS // max(len(obs), 1)), 1))
             with untouched_random_streams():
                 torch.manual_seed(CHECK_SEED + step)
-                streams, before = numpy_and_python_streams(), ActState(act, twin)
+                streams, before = numpy_and_python_streams(), KeptState(act, {"actor": twin})
                 try:
                     # twice: an act() that keeps state between calls (sticky actions, correlated noise) shows in
                     # its second call, if not already in what it sets
@@ -604,7 +661,7 @@ class FastPaths:
                                     " torch.Tensor(obs))", step)
                     return definition
                 finally:
-                    before.restore_globals()  # the check's calls leave nothing behind for the run's own act()
+                    before.restore()  # the check's calls leave nothing behind for the run's own act()
                 torch.manual_seed(CHECK_SEED + step)
                 sampler = numpy_gaussian_sampler(self.numpy_policy(twin))
                 fast = [torch.as_tensor(sampler(obs), dtype=torch.float64) for _ in range(2)]
@@ -661,7 +718,16 @@ class FastPaths:
             params = [*actor64.parameters(), *critic64.parameters()]
             minibatch = tuple(t.detach().double() for t in minibatch)
             with untouched_random_streams():  # an edit may draw random numbers: not from training's streams
-                reference_loss, reference_parts = autograd_gradients(actor64, critic64, params, minibatch, args)
+                before = KeptState(autograd_gradients, {"args": args})
+                try:
+                    reference_loss, reference_parts = autograd_gradients(actor64, critic64, params, minibatch, args)
+                    kept = before.changes()
+                finally:
+                    before.restore()  # the check's call leaves nothing behind
+                if kept:  # (a schedule of args, a counter: on the fast path the function runs only in the checks)
+                    self.switch_off("gradients", f"autograd_gradients keeps state between calls ({kept}), which the "
+                                    "hand-written update does not", step)
+                    return
                 reference = [p.grad.clone() for p in params]
                 # NaN where the hand-written update writes nothing: a parameter it does not know of (one an edit
                 # added) then reads as a disagreement here, not as autograd's gradient left in the buffer
@@ -740,7 +806,14 @@ class FastPaths:
                 if step_function is None:
                     fast_optimizer_step(param, twin, args.max_grad_norm)
                 else:
-                    step_function(param, twin, args)
+                    watch = KeptState(step_function, {"args": args})
+                    try:
+                        step_function(param, twin, args)
+                        kept = watch.changes()
+                    finally:
+                        watch.restore()
+                    if kept:
+                        return f"optimizer_step keeps state between calls ({kept}), which the fast step does not"
                     if param.grad is not gradient:  # the nets' .grad are views of this one tensor: it must stay
                         return "optimizer_step replaces or removes the .grad of the flat parameter buffer " \
                                "(optimizer.zero_grad() sets it to None), which every net's .grad is a view of, so " \

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from .fast import ActState, describe, untouched_random_streams
+from .fast import KeptState, describe, untouched_random_streams
 from .offpolicy import step_with_gradients
 
 # A check covers the first update with each new set of optimizers and the first complete one after it (one that
@@ -621,7 +621,8 @@ class OffPolicyFastPath:
         self.announce, self.complete = announce, complete
         self.optimizers: tuple = ()  # the optimizers of the latest update: new ones start a new iteration
         self.updates = 0  # updates since then
-        self.next_check = 0  # the update count from which the next check is due (then: at the next complete update)
+        self.next_check = 0  # the update count from which the next check is due
+        self.complete_checked = False  # has a complete update been checked since the latest new optimizers?
         self.acting_key: tuple = ()  # (actor, its size) at the latest acting check
         self.acts = 0  # acting steps since then
         self.next_acting_check = 0
@@ -669,14 +670,14 @@ class OffPolicyFastPath:
             with float64_by_default():
                 # twice: an explore that keeps state between calls (Ornstein-Uhlenbeck noise, sticky actions) shows
                 # in its second call, if not already in the names it binds (which the check then undoes)
-                before = ActState(definition, twin)
+                before = KeptState(definition, {"actor": twin})
                 try:
                     with untouched_random_streams(), torch.inference_mode():  # the script's draws
                         reference = [definition(twin, torch.as_tensor(rows), *extra).detach().numpy()
                                      for _ in range(2)]
                     kept = before.changes()
                 finally:
-                    before.restore_globals()
+                    before.restore()
                 if kept:
                     return f"explore keeps state between calls ({kept}), while the numpy acting path draws afresh"
                 with untouched_random_streams():  # the same draws again
@@ -707,10 +708,15 @@ class OffPolicyFastPath:
             # complete one (the actor's, the temperature's and the targets' updates come every few steps)
             self.optimizers, self.updates, self.next_check = optimizers, 0, 0
         first = self.updates == 0
-        due = self.updates >= self.next_check and self.complete(arguments[1])
+        if first:
+            self.complete_checked = False
+        # the first check after the first update waits for a complete update; the later ones fall on any update (an
+        # edit may act on incomplete ones only: a condition on odd steps)
+        due = self.updates >= self.next_check and (self.complete_checked or self.complete(arguments[1]))
         if first or due:
             if due:
                 self.next_check = self.updates + self.gap()
+                self.complete_checked = True
             try:
                 what = self.check(definition, arguments)
             except Exception as exc:  # an edit the fast path cannot follow (a new layer, another activation...)
@@ -734,7 +740,15 @@ class OffPolicyFastPath:
             with float64_by_default(), np.errstate(over="ignore", invalid="ignore"):
                 with untouched_random_streams():  # the script's draws (the run's streams stay where they are)
                     reference = float64_twins(arguments)
-                    reference_out = definition(*reference)
+                    before = KeptState(definition, {"args": arguments[0]})
+                    try:
+                        reference_out = definition(*reference)
+                        kept = before.changes()
+                    finally:
+                        before.restore()  # the check's call leaves nothing behind
+                    if kept:  # (a schedule of args, a counter: the script's update runs only in the checks)
+                        name = getattr(definition, "__name__", "the update")
+                        return f"{name} keeps state between calls ({kept}), which the fast update does not"
                 with untouched_random_streams(), torch.no_grad():  # the same draws again
                     fast = float64_twins(arguments)
                     fast_out = self.fast_update(*fast)

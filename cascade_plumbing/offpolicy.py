@@ -34,7 +34,9 @@ from .tracking import log_new_videos
 def minimize(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
     """`optimizer.zero_grad(); loss.backward(); optimizer.step()`, with less overhead, still plain autograd:
     torch.autograd.grad computes the gradients of exactly the optimizer's parameters (no other weight gradient,
-    e.g. none of the critics' in the actor loss), and `step_with_gradients` applies them."""
+    e.g. none of the critics' in the actor loss), and `step_with_gradients` applies them. No `.grad` is left behind
+    (the kernel call never sets it), so a `clip_grad_norm_` or a gradient-norm log after it sees nothing: to clip or
+    log gradients, write CleanRL's three lines in the update instead."""
     params = [param for each in optimizer.param_groups for param in each["params"]]  # every group's (a hacker's)
     step_with_gradients(optimizer, params, list(torch.autograd.grad(loss, params, materialize_grads=True)))
 

@@ -319,8 +319,10 @@ def test_an_edit_drawing_from_numpy_leaves_the_run_as_autograd_runs_it():
 
 
 def test_checks_come_at_each_iteration_start_and_then_at_random_phases(monkeypatch):
-    """The first update with new optimizers and the first complete one after it, then complete updates about every
-    CHECK_EVERY, at varying phases (so that an edit acting every so many steps is met)."""
+    """The first update with new optimizers and the first complete one after it, then any update about every
+    CHECK_EVERY, at varying phases (so that an edit acting every so many steps is met, also on incomplete updates
+    only: a researcher's probe, 2026-12-05, found a condition on odd steps never checked once the first update
+    fell on an even one)."""
     monkeypatch.setattr(fo, "CHECK_EVERY", 10)
     state = ddpg_setup(1, True, "tanh")
     path = fo.OffPolicyFastPath(True, fo.DDPGFast(), complete=lambda step: step % 2 == 0)
@@ -331,7 +333,7 @@ def test_checks_come_at_each_iteration_start_and_then_at_random_phases(monkeypat
     for step in range(1, 201):  # (an iteration's updates start at an odd step by default: learning_starts + 1)
         path.update(cd.ddpg_update, *ddpg_arguments(state, step, step), step=step)
     assert checked[:2] == [1, 2]  # the first update, then the first complete one
-    assert all(step % 2 == 0 for step in checked[1:])
+    assert {step % 2 for step in checked[2:]} == {0, 1}  # complete and incomplete updates alike
     gaps = np.diff(checked[1:])
     assert 10 <= len(checked) <= 40 and gaps.min() >= 5 and len(set(step % 20 for step in checked[1:])) >= 5
     state["actor_optimizer"] = cd.make_adam(list(state["actor"].parameters()), 3e-4, 1e-5)  # a new iteration
@@ -535,3 +537,80 @@ def test_an_acting_check_leaves_the_random_stream_and_the_actions_as_without_it(
         assert path.checks == int(checked)
     np.testing.assert_array_equal(*actions)
     assert torch.equal(*states)
+
+
+update_count = 0  # a global counter kept by `ddpg_update_counting`, as an edit of a script might
+running = {"critic_loss": 0.0}  # running statistics kept inside a global dict
+
+
+def ddpg_update_decaying_tau(args, *rest):
+    out = cd.ddpg_update(args, *rest)
+    args.tau = args.tau * 0.5  # a schedule of the target step, kept in args
+    return out
+
+
+def ddpg_update_counting(*arguments):
+    global update_count
+    update_count += 1
+    return cd.ddpg_update(*arguments)
+
+
+def ddpg_update_averaging(*arguments):
+    out = cd.ddpg_update(*arguments)
+    running["critic_loss"] = 0.9 * running["critic_loss"] + 0.1 * float(out["qf1_loss"].detach())
+    return out
+
+
+@pytest.mark.parametrize("edit,named", [(ddpg_update_decaying_tau, "it sets args.tau"),
+                                        (ddpg_update_counting, "it sets global update_count"),
+                                        (ddpg_update_averaging, "it sets the contents of global running")])
+def test_an_update_that_keeps_state_between_calls_switches_the_fast_update_off(edit, named):
+    """A researcher's probe (2026-12-05): an update that changed `args` (a decaying tau) passed the check, whose
+    float64 run changed the run's own args first, and was then ignored: the fast update never changes it. Counters and
+    running statistics kept in globals counted the checks, not the updates. Now such state is named, the check's
+    call leaves nothing behind, and the run continues with the script's update from that step on, as --autograd."""
+    global update_count
+    update_count = 0
+    running["critic_loss"] = 0.0
+    state = ddpg_setup(1, True, "tanh")
+    messages = []
+    path = fo.OffPolicyFastPath(True, fo.DDPGFast(), announce=lambda message, step: messages.append(message))
+    path.update(edit, *ddpg_arguments(state, 1, 1), step=1)
+    assert not path.on and len(messages) == 1 and f"{edit.__name__} keeps state between calls ({named})" in messages[0]
+    # the step ran once, by the script's update: as often as an --autograd run would have run it
+    assert state["args"].tau == cd.Args().tau * (0.5 if edit is ddpg_update_decaying_tau else 1.0)
+    assert update_count == (1 if edit is ddpg_update_counting else 0)
+    assert (running["critic_loss"] != 0.0) == (edit is ddpg_update_averaging)
+
+
+class NoiseProcess:
+    """Ornstein-Uhlenbeck noise as a class (the classic DDPG code), its state as wide as the batch it last saw."""
+
+    def __init__(self):
+        self.state = None
+
+    def sample(self, shape):
+        step = torch.randn(shape)
+        self.state = step * 0.1 if self.state is None or self.state.shape != shape else 0.85 * self.state + 0.1 * step
+        return self.state
+
+
+ou_process = NoiseProcess()
+
+
+def explore_ou_object(actor, obs, noise):
+    action, _, _ = actor(obs)
+    return cd.add_noise(action + ou_process.sample(action.shape) * actor.action_scale, actor, 0.0)
+
+
+def test_an_explore_keeping_state_inside_an_object_is_named_and_left_as_it_was():
+    """The noise process kept in an object: the check's calls changed it to the check's 64 rows, and the run's next
+    step then returned 64 actions for one observation (a crash in the env). Now its contents are compared, named,
+    and put back as they were before the check."""
+    ou_process.state = None
+    actor, _, fast, extra = acting_setup(("ddpg", 2, True, "tanh", 0.1))
+    messages = []
+    path = fo.OffPolicyFastPath(True, fast, announce=lambda message, step: messages.append(message))
+    action = path.act(explore_ou_object, actor, np.ones((1, OBS_DIM), np.float32), *extra, step=3)
+    assert not path.acting and "(it sets the contents of global ou_process)" in messages[0], messages
+    assert action.shape == (1, ACT_DIM) and ou_process.state.shape == (1, ACT_DIM)  # the run's own first call

@@ -529,3 +529,33 @@ def test_the_acting_check_sees_state_kept_inside_a_container():
     fast = cpc.make_fast_paths(cpc.Args(), torch.device("cpu"))
     fast.acting_function(act, actor, np.zeros((2, 3), np.float32), 0, 4)
     assert not fast.acting and "act() keeps state between calls (its second call" in fast.messages[0]
+
+
+STATEFUL_UPDATES = {  # edits of the checked update functions that keep state between calls
+    "clip range schedule": ([("    obs, actions, old_logprob, advantages, returns, old_value = minibatch\n",
+                              "    obs, actions, old_logprob, advantages, returns, old_value = minibatch\n"
+                              "    args.clip_coef = args.clip_coef * 0.99\n")],
+                            "autograd_gradients keeps state between calls (it sets args.clip_coef)"),
+    "step counter": ([("    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n",
+                       "    global steps_taken\n"
+                       "    steps_taken = globals().get('steps_taken', 0) + 1\n"
+                       "    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm * 0.99 ** steps_taken)\n")],
+                     "optimizer_step keeps state between calls (it sets global steps_taken)"),
+}
+
+
+@pytest.mark.parametrize("edit", list(STATEFUL_UPDATES))
+def test_an_update_that_keeps_state_between_calls_switches_the_hand_written_update_off(edit, unedited, tmp_path):
+    """A researcher's probe (2026-12-05, of the off-policy scripts): a schedule kept in `args` by the checked
+    functions, or a counter in a global, ran only inside the checks (and moved the run's own args there). Now the
+    check names it, undoes what its own call set, and the run updates through section 1 from that minibatch on,
+    as --autograd does."""
+    edits, named = STATEFUL_UPDATES[edit]
+    module = edited_copy("cascade_ppo_continuous.py", edits, tmp_path)
+    switched, messages = train_copy(module, "cascade_ppo_continuous.py", tmp_path / "fast")
+    assert len(messages) == 1 and named in messages[0], messages
+    module.__dict__.pop("steps_taken", None)  # the next run starts afresh, as a new process would
+    edited, _ = train_copy(module, "cascade_ppo_continuous.py", tmp_path / "autograd", autograd=True)
+    assert_close_parameters(switched, edited, ROUNDING)
+    effect = max((edited[k] - unedited["cascade_ppo_continuous.py"][k]).abs().max().item() for k in edited)
+    assert effect > 3 * ROUNDING, effect

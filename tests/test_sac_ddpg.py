@@ -647,3 +647,19 @@ def test_learns(check, tmp_path):
     """SAC: Pendulum-v1, 2 nets of 3K steps; DDPG: InvertedPendulum-v4, 2 nets of 4K steps (see
     tests/learning_checks.py for the spread the thresholds come from)."""
     learning_checks.assert_learns(check, str(tmp_path))
+
+
+def test_sac_evaluations_act_through_get_action(monkeypatch):
+    """An edit of `get_action` (another sampling of the policy) is the policy the evaluations act with too, as
+    `explore` and `sac_update` do (a researcher's probe, 2026-12-05: they sampled through their own copy of it)."""
+    mod = SCRIPTS["sac"]
+    actor = make_actor(mod, 2)
+
+    def edited(self, obs, generator=None):
+        return torch.full((len(obs), 3), 0.25), torch.zeros(len(obs), 1), torch.full((len(obs), 3), -0.5)
+
+    monkeypatch.setattr(mod.CascadeActor, "get_action", edited)
+    obs = torch.zeros(4, 5)
+    for deterministic, expected in ((False, 0.25), (True, -0.5)):
+        action, fallback = mod.full_policy(actor, deterministic)(obs, torch.Generator().manual_seed(0))
+        assert torch.equal(action, torch.full((4, 3), expected)) and fallback.shape == (1, 4)
