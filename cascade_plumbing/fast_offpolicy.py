@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import inspect
 import math
 import random
 import time
@@ -547,12 +548,26 @@ def float64_twins(arguments: tuple) -> tuple:
     return tuple(optimizer(a) if isinstance(a, torch.optim.Optimizer) else c for a, c in zip(arguments, copied))
 
 
-def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out: dict,
-                 fast_out: dict) -> tuple[str | None, float]:
+def argument_names(function: Callable) -> list[str]:
+    """The names of `function`'s positional parameters (`args`, `qf`, `log_alpha`), for the checks' messages; [] if
+    it has no signature (the messages then say "argument 3")."""
+    try:
+        parameters = inspect.signature(function).parameters.values()
+    except (TypeError, ValueError):
+        return []
+    return [p.name for p in parameters if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+
+
+def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out: dict, fast_out: dict,
+                 labels: list[str] | None = None) -> tuple[str | None, float]:
     """What the fast update left differently from the script's (None: nothing beyond float64 rounding), and the
     largest relative difference of all."""
     if set(reference_out) != set(fast_out):
         return f"the update returns {sorted(reference_out)}, the fast path {sorted(fast_out)}", math.inf
+
+    def label(i: int) -> str:  # the update's own name for its argument i (`qf`, `log_alpha`), else its position
+        return labels[i] if labels is not None and i < len(labels) else f"argument {i + 1}"
+
     pairs: list[tuple[str, list, list, float, float]] = []  # (what, reference, fast, floor scale, tolerance)
     for i, (original, ref, new) in enumerate(zip(arguments, reference, fast)):
         if isinstance(original, nn.Module):
@@ -560,7 +575,7 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
             names = [name for name, _ in original.named_parameters()]
             ref_moves = [p.detach() - b for p, b in zip(ref.parameters(), before)]
             fast_moves = [p.detach() - b for p, b in zip(new.parameters(), before)]
-            pairs += [(f"the change of argument {i + 1}'s {name}", [r], [f], max_abs(ref_moves), STEP_TOLERANCE)
+            pairs += [(f"the change of {label(i)}'s {name}", [r], [f], max_abs(ref_moves), STEP_TOLERANCE)
                       for name, r, f in zip(names, ref_moves, fast_moves)]
         elif isinstance(original, torch.optim.Optimizer):
             ref_states = [v for p in (p for g in ref.param_groups for p in g["params"]) for v in ref.state[p].values()
@@ -568,11 +583,11 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
             new_states = [v for p in (p for g in new.param_groups for p in g["params"]) for v in new.state[p].values()
                           if isinstance(v, torch.Tensor) and v.dim()]
             if len(ref_states) != len(new_states):
-                return f"argument {i + 1} (an optimizer) holds another state", math.inf
-            pairs += [(f"argument {i + 1}'s optimizer state", [r], [f], max_abs(ref_states), TOLERANCE)
+                return f"{label(i)} (an optimizer) holds another state", math.inf
+            pairs += [(f"{label(i)}'s optimizer state", [r], [f], max_abs(ref_states), TOLERANCE)
                       for r, f in zip(ref_states, new_states)]
         elif isinstance(original, torch.Tensor):
-            pairs.append((f"argument {i + 1}", [ref.detach()], [new.detach()], 0.0, TOLERANCE))
+            pairs.append((label(i), [ref.detach()], [new.detach()], 0.0, TOLERANCE))
     for key in reference_out:
         r, f = torch.as_tensor(reference_out[key]).double(), torch.as_tensor(fast_out[key]).double()
         pairs.append((f"'{key}'", [r.detach()], [f.detach()], 0.0, TOLERANCE))
@@ -732,10 +747,12 @@ class OffPolicyFastPath:
     def check(self, definition: Callable[..., dict], arguments: tuple) -> str | None:
         """Run the script's update and the fast one on float64 copies, from the same random state; what differs."""
         start = time.perf_counter()
-        hooked = [tuple(p.shape) for a in arguments if isinstance(a, nn.Module) for p in a.parameters()
+        names = argument_names(definition)
+        hooked = [f"{names[i] if i < len(names) else f'argument {i + 1}'}.{name}" for i, a in enumerate(arguments)
+                  if isinstance(a, nn.Module) for name, p in a.named_parameters()
                   if p._backward_hooks or getattr(p, "_post_accumulate_grad_hooks", None)]
         if hooked:
-            return f"a parameter of shape {hooked[0]} has a gradient hook, which the hand-written update does not apply"
+            return f"{hooked[0]} has a gradient hook, which the hand-written update does not apply"
         try:
             with float64_by_default(), np.errstate(over="ignore", invalid="ignore"):
                 with untouched_random_streams():  # the script's draws (the run's streams stay where they are)
@@ -752,7 +769,7 @@ class OffPolicyFastPath:
                 with untouched_random_streams(), torch.no_grad():  # the same draws again
                     fast = float64_twins(arguments)
                     fast_out = self.fast_update(*fast)
-            what, worst = disagreement(arguments, reference, fast, reference_out, fast_out)
+            what, worst = disagreement(arguments, reference, fast, reference_out, fast_out, names)
             if what is None:
                 self.checks += 1
                 self.worst = max(self.worst, worst)

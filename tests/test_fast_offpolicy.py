@@ -253,6 +253,7 @@ def test_check_catches_an_edit_of_the_script(script, edit, monkeypatch):
         state["alpha"] = out.get("alpha", 0.0)
     expected = "fails on these nets" if edit == "new parameter" else "differs"
     assert not path.on and len(messages) == 1 and expected in messages[0], messages
+    assert "argument " not in messages[0]  # what differs is named as the update names it (`qf`, `q_optimizer`)
 
 
 def test_check_catches_a_wrong_fast_path(monkeypatch):
