@@ -38,6 +38,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from cascade_plumbing.checkpoints import load_checkpoint as load_script_checkpoint
+from cascade_plumbing.checkpoints import load_optimizer
 from cascade_plumbing.envs import make_env, make_vector_env
 from cascade_plumbing.errors import fail
 from cascade_plumbing.fast_offpolicy import OffPolicyFastPath, SACFast
@@ -443,10 +444,10 @@ def train(args: Args, checkpoint: dict | None = None,
         actor = actor_from_checkpoint(checkpoint, device)
         qf.load_state_dict(checkpoint["qf"])
         qf_target.load_state_dict(checkpoint["qf_target"])
-        q_optimizer.load_state_dict(checkpoint["q_optimizer"])
+        load_optimizer(q_optimizer, checkpoint["q_optimizer"])
         with torch.no_grad():
             log_alpha.copy_(checkpoint["log_alpha"])
-        a_optimizer.load_state_dict(checkpoint["a_optimizer"])
+        load_optimizer(a_optimizer, checkpoint["a_optimizer"])
         alpha = checkpoint["alpha"]
 
     for iteration in range(start_iteration, args.n + 1):

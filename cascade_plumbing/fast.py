@@ -510,76 +510,143 @@ def untouched_random_streams() -> Iterator[None]:
 class KeptState:
     """What a checked function (`act`, an update) changes that outlives its call, so that a check can name it and undo
     what its own calls set: the global names of the function's module and the plain attributes of `objects` (the
-    actor, `args`), compared by identity, and the contents of the mutable globals that the function's own code names
-    (a noise process's object, a dict of running statistics), copied before the call and compared and put back in
-    place after it."""
+    actor, `args`), compared as bindings, and the contents of the mutable globals that the function's own code names
+    (a noise process's object, a dict of running statistics), copied before the call, compared after it and, where
+    changed, put back: the same objects in the same places, their tensors' and arrays' values copied back in place.
+    Not seen: state in a helper's globals, in function or class attributes, or deeper inside an object (the acting
+    checks' second call still shows its effect)."""
 
     def __init__(self, function: Callable, objects: dict[str, Any]):
         self.namespace = getattr(function, "__globals__", {})
         self.globals = dict(self.namespace)
         self.objects = {label: (obj, dict(vars(obj))) for label, obj in objects.items() if hasattr(obj, "__dict__")}
         code = getattr(function, "__code__", None)
-        self.contents: dict[str, tuple[Any, Any]] = {}
+        self.contents: dict[str, tuple[Any, Any, Any]] = {}  # name: (the object, its references, a deep copy)
         for name in code.co_names if code is not None else ():
             value = self.namespace.get(name)
             if isinstance(value, (dict, list, set, torch.Tensor, np.ndarray)) or (
                     hasattr(value, "__dict__") and not callable(value) and not isinstance(value, types.ModuleType)):
                 try:
-                    self.contents[name] = (value, copy.deepcopy(value))
+                    saved = copy.deepcopy(value)
                 except Exception:  # (an object that cannot be copied: not watched)
-                    pass
+                    continue
+                if saved is not value:  # (deepcopy returns some objects themselves: a logger, an Enum member)
+                    self.contents[name] = (value, shallow_references(value), saved)
 
     def changes(self) -> str:
         """What the function set, as 'it sets global x, args.tau', or '' if nothing."""
         def rebound(before: dict, now: dict, prefix: str) -> list[str]:
             return [prefix + name for name in sorted(before.keys() | now.keys())  # (not Python's own __names__)
-                    if before.get(name, KeptState) is not now.get(name, KeptState) and not name.startswith("__")]
+                    if not same_binding(before.get(name, KeptState), now.get(name, KeptState))
+                    and not name.startswith("__")]
         names = rebound(self.globals, self.namespace, "global ")
         for label, (obj, attributes) in self.objects.items():
             names += rebound(attributes, vars(obj), f"{label}.")
-        names += [f"the contents of global {name}" for name, (value, saved) in self.contents.items()
-                  if f"global {name}" not in names and not same_contents(value, saved)]
+        self.changed = [name for name, (value, _, saved) in self.contents.items() if not same_contents(value, saved)]
+        names += [f"the contents of global {name}" for name in self.changed if f"global {name}" not in names]
         return ("it sets " + ", ".join(names)) if names else ""
 
     def restore(self) -> None:
-        """Put back every global name, attribute and watched content as it was before the call."""
+        """Put back every global name, attribute and changed content as it was before the call."""
         for name in [name for name in self.namespace if name not in self.globals]:
             del self.namespace[name]
         self.namespace.update(self.globals)
         for obj, attributes in self.objects.values():
             vars(obj).clear()
             vars(obj).update(attributes)
-        for value, saved in self.contents.values():
+        changed = getattr(self, "changed", None)
+        for name, (value, references, saved) in self.contents.items():
+            if changed is None and same_contents(value, saved) or changed is not None and name not in changed:
+                continue
             with contextlib.suppress(Exception), torch.no_grad():
-                if isinstance(value, (dict, set)):
-                    value.clear()
-                    value.update(copy.deepcopy(saved))
-                elif isinstance(value, list):
-                    value[:] = copy.deepcopy(saved)
-                elif isinstance(value, torch.Tensor):
-                    value.copy_(saved)
-                elif isinstance(value, np.ndarray):
-                    value[...] = saved
-                else:
-                    vars(value).clear()
-                    vars(value).update(copy.deepcopy(vars(saved)))
+                put_back(value, references, saved)
 
 
-def same_contents(a: Any, b: Any) -> bool:
-    """a and b hold the same values (tensors, arrays, containers and objects compared element by element); True
-    where that cannot be told."""
+IMMUTABLE = (int, float, complex, str, bytes, bool, type(None), tuple, frozenset)
+
+
+def same_binding(a: Any, b: Any) -> bool:
+    """The same object, or an equal immutable value (`args.clip_coef = 0.2` where it was 0.2 is no change)."""
+    if a is b:
+        return True
+    try:
+        return type(a) is type(b) and isinstance(a, IMMUTABLE) and bool(a == b)
+    except Exception:
+        return False
+
+
+def shallow_references(value: Any) -> Any:
+    """What `value` refers to, one level down (the objects themselves, not copies), to put back as they were."""
+    if isinstance(value, dict):
+        return dict(value)
+    if isinstance(value, (list, set)):
+        return type(value)(value)
+    if isinstance(value, (torch.Tensor, np.ndarray)):
+        return None
+    return dict(vars(value))
+
+
+def put_back(value: Any, references: Any, saved: Any) -> None:
+    """`value` as it was: its own references back in their places, and the values of the tensors and arrays among
+    them (and of `value` itself, if one) copied back in place from `saved`, the deep copy taken before."""
+    if isinstance(value, torch.Tensor):
+        value.copy_(saved)
+        return
+    if isinstance(value, np.ndarray):
+        value[...] = saved
+        return
+    if isinstance(value, dict):
+        value.clear()
+        value.update(references)
+        pairs = [(references[key], saved.get(key)) for key in references]
+    elif isinstance(value, list):
+        value[:] = references
+        pairs = list(zip(references, saved))
+    elif isinstance(value, set):
+        value.clear()
+        value.update(references)
+        pairs = []
+    else:
+        vars(value).clear()
+        vars(value).update(references)
+        pairs = [(references[key], vars(saved).get(key)) for key in references]
+    for item, item_saved in pairs:  # tensors and arrays one level down, changed in place
+        if isinstance(item, torch.Tensor) and isinstance(item_saved, torch.Tensor) and item.shape == item_saved.shape:
+            item.copy_(item_saved)
+        elif isinstance(item, np.ndarray) and isinstance(item_saved, np.ndarray) and item.shape == item_saved.shape:
+            item[...] = item_saved
+
+
+def same_contents(a: Any, b: Any, seen: set | None = None) -> bool:
+    """a and b hold the same values (tensors, arrays, containers and objects compared element by element, NaN equal
+    to NaN); True where that cannot be told."""
+    if a is b:
+        return True
+    seen = set() if seen is None else seen
+    if (id(a), id(b)) in seen:  # (a cycle: already being compared)
+        return True
+    seen.add((id(a), id(b)))
     try:
         if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
-            return isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor) and a.shape == b.shape and bool(
-                torch.equal(a, b))
+            if not (isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor) and a.shape == b.shape
+                    and a.dtype == b.dtype):
+                return False
+            if a.is_floating_point() or a.is_complex():
+                return bool(((a == b) | (a.isnan() & b.isnan())).all())
+            return bool(torch.equal(a, b))
         if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-            return bool(np.array_equal(a, b))
+            try:
+                return bool(np.array_equal(a, b, equal_nan=True))
+            except TypeError:  # (arrays of objects or strings: no NaN to treat)
+                return bool(np.array_equal(a, b))
         if isinstance(a, dict) and isinstance(b, dict):
-            return a.keys() == b.keys() and all(same_contents(a[key], b[key]) for key in a)
+            return a.keys() == b.keys() and all(same_contents(a[key], b[key], seen) for key in a)
         if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-            return len(a) == len(b) and all(same_contents(x, y) for x, y in zip(a, b))
+            return len(a) == len(b) and all(same_contents(x, y, seen) for x, y in zip(a, b))
         if hasattr(a, "__dict__") and type(a) is type(b) and not callable(a):
-            return same_contents(vars(a), vars(b))
+            return same_contents(vars(a), vars(b), seen)
+        if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+            return True
         return bool(a == b)
     except Exception:
         return True

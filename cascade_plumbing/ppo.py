@@ -89,8 +89,9 @@ def log_ppo_update(writer: Any, global_step: int, optimizer: torch.optim.Optimiz
     write("losses/approx_kl", approx_kl.item(), global_step)
     write("losses/clipfrac", ((ratios - 1.0).abs() > clip_coef).float().mean().item(), global_step)
     write("losses/explained_variance", explained_var, global_step)
+    written = {"value_loss", "policy_loss", "entropy", "old_approx_kl", "approx_kl", "clipfrac", "explained_variance"}
     for key, value in parts.items():  # a scalar part that an edit added to ppo_loss's dict, under its own name
-        if key not in ("value_loss", "policy_loss", "entropy") and value.numel() == 1:
+        if key not in written and value.dim() == 0:  # (not the per-sample ratios, even of a one-row minibatch)
             write(f"losses/{key}", value.item(), global_step)
     write("charts/fast_acting", float(fast.acting), global_step)
     write("charts/fast_gradients", float(fast.gradients), global_step)

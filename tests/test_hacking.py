@@ -3,6 +3,7 @@ fast paths or through autograd after a one-line warning, never silently wrong; t
 keep their fast paths; --autograd gives the fast path's results up to float rounding."""
 
 import importlib.util
+import logging
 import os
 import shutil
 import subprocess
@@ -559,3 +560,41 @@ def test_an_update_that_keeps_state_between_calls_switches_the_hand_written_upda
     assert_close_parameters(switched, edited, ROUNDING)
     effect = max((edited[k] - unedited["cascade_ppo_continuous.py"][k]).abs().max().item() for k in edited)
     assert effect > 3 * ROUNDING, effect
+
+
+LOG = logging.getLogger("cascade-tests")  # deepcopy returns a logger itself; its attribute graph has cycles
+STATS = {"mean": torch.zeros(3)}  # running statistics in a global dict
+NAN_BUFFER = torch.full((2,), float("nan"))
+
+
+def reads_globals():
+    LOG.debug("acting")
+    return STATS["mean"].sum() + NAN_BUFFER.nan_to_num().sum()
+
+
+def keeps_statistics():
+    STATS["mean"].add_(1.0)
+    STATS["count"] = 1
+
+
+def test_the_checks_leave_globals_that_nothing_changed_as_they_are():
+    """A review (2026-12-05): watching a function's globals hung on a logger (its attribute graph has cycles),
+    emptied it on restoring, put deep copies in place of unchanged objects (so a tensor shared with the rest of the
+    run no longer was), and read a NaN buffer as changed. Unchanged globals are now named nowhere and left alone."""
+    shared = STATS["mean"]
+    watch = fast_paths.KeptState(reads_globals, {})
+    reads_globals()
+    assert watch.changes() == ""
+    watch.restore()
+    assert STATS["mean"] is shared and LOG.disabled is False
+    LOG.debug("still a working logger")
+
+
+def test_the_checks_put_changed_contents_back_in_place():
+    """Changed contents go back as they were: the same objects in the same places, values copied back in place."""
+    shared = STATS["mean"]
+    watch = fast_paths.KeptState(keeps_statistics, {})
+    keeps_statistics()
+    assert watch.changes() == "it sets the contents of global STATS"
+    watch.restore()
+    assert STATS["mean"] is shared and torch.equal(shared, torch.zeros(3)) and "count" not in STATS
