@@ -514,10 +514,12 @@ class KeptState:
     (a noise process's object, a dict of running statistics), copied before the call, compared after it and, where
     changed, put back: the same objects in the same places, their tensors' and arrays' values copied back in place.
     Not seen: state in a helper's globals, in function or class attributes, or deeper inside an object (the acting
-    checks' second call still shows its effect)."""
+    checks' second call still shows its effect). A context manager: what the calls inside it set is put back on
+    leaving it."""
 
     def __init__(self, function: Callable, objects: dict[str, Any]):
         self.namespace = getattr(function, "__globals__", {})
+        self.changed: list[str] | None = None  # the watched contents that changed (set by `changes`)
         self.globals = dict(self.namespace)
         self.objects = {label: (obj, dict(vars(obj))) for label, obj in objects.items() if hasattr(obj, "__dict__")}
         code = getattr(function, "__code__", None)
@@ -542,7 +544,7 @@ class KeptState:
         names = rebound(self.globals, self.namespace, "global ")
         for label, (obj, attributes) in self.objects.items():
             names += rebound(attributes, vars(obj), f"{label}.")
-        self.changed = [name for name, (value, _, saved) in self.contents.items() if not same_contents(value, saved)]
+        self.changed = self.changed_contents()
         names += [f"the contents of global {name}" for name in self.changed if f"global {name}" not in names]
         return ("it sets " + ", ".join(names)) if names else ""
 
@@ -554,12 +556,19 @@ class KeptState:
         for obj, attributes in self.objects.values():
             vars(obj).clear()
             vars(obj).update(attributes)
-        changed = getattr(self, "changed", None)
-        for name, (value, references, saved) in self.contents.items():
-            if changed is None and same_contents(value, saved) or changed is not None and name not in changed:
-                continue
+        changed = self.changed if self.changed is not None else self.changed_contents()
+        for name in changed:
             with contextlib.suppress(Exception), torch.no_grad():
-                put_back(value, references, saved)
+                put_back(*self.contents[name])
+
+    def changed_contents(self) -> list[str]:
+        return [name for name, (value, _, saved) in self.contents.items() if not same_contents(value, saved)]
+
+    def __enter__(self) -> KeptState:
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self.restore()
 
 
 IMMUTABLE = (int, float, complex, str, bytes, bool, type(None), tuple, frozenset)
@@ -708,12 +717,15 @@ class FastPaths:
             obs = np.tile(obs, (-(-CHECK_ROWS // max(len(obs), 1)), 1))
             with untouched_random_streams():
                 torch.manual_seed(CHECK_SEED + step)
-                streams, before = numpy_and_python_streams(), KeptState(act, {"actor": twin})
+                streams = numpy_and_python_streams()
                 try:
                     # twice: an act() that keeps state between calls (sticky actions, correlated noise) shows in
-                    # its second call, if not already in what it sets
-                    reference = [torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64) for _ in range(2)]
-                    kept = before.changes()
+                    # its second call, if not already in what it sets (put back on leaving: the check's calls
+                    # leave nothing behind for the run's own act())
+                    with KeptState(act, {"actor": twin}) as watch:
+                        reference = [torch.as_tensor(np.asarray(act(twin, obs)), dtype=torch.float64)
+                                     for _ in range(2)]
+                        kept = watch.changes()
                     if kept:
                         self.switch_off("acting", f"act() keeps state between calls ({kept}), while the numpy acting "
                                         "path draws every action afresh", step)
@@ -727,8 +739,6 @@ class FastPaths:
                                     " the check needs act to keep the observation's dtype (torch.as_tensor(obs), not"
                                     " torch.Tensor(obs))", step)
                     return definition
-                finally:
-                    before.restore()  # the check's calls leave nothing behind for the run's own act()
                 torch.manual_seed(CHECK_SEED + step)
                 sampler = numpy_gaussian_sampler(self.numpy_policy(twin))
                 fast = [torch.as_tensor(sampler(obs), dtype=torch.float64) for _ in range(2)]
@@ -785,12 +795,9 @@ class FastPaths:
             params = [*actor64.parameters(), *critic64.parameters()]
             minibatch = tuple(t.detach().double() for t in minibatch)
             with untouched_random_streams():  # an edit may draw random numbers: not from training's streams
-                before = KeptState(autograd_gradients, {"args": args})
-                try:
+                with KeptState(autograd_gradients, {"args": args}) as watch:  # (its call leaves nothing behind)
                     reference_loss, reference_parts = autograd_gradients(actor64, critic64, params, minibatch, args)
-                    kept = before.changes()
-                finally:
-                    before.restore()  # the check's call leaves nothing behind
+                    kept = watch.changes()
                 if kept:  # (a schedule of args, a counter: on the fast path the function runs only in the checks)
                     self.switch_off("gradients", f"autograd_gradients keeps state between calls ({kept}), which the "
                                     "hand-written update does not", step)
@@ -873,12 +880,9 @@ class FastPaths:
                 if step_function is None:
                     fast_optimizer_step(param, twin, args.max_grad_norm)
                 else:
-                    watch = KeptState(step_function, {"args": args})
-                    try:
+                    with KeptState(step_function, {"args": args}) as watch:
                         step_function(param, twin, args)
                         kept = watch.changes()
-                    finally:
-                        watch.restore()
                     if kept:
                         return f"optimizer_step keeps state between calls ({kept}), which the fast step does not"
                     if param.grad is not gradient:  # the nets' .grad are views of this one tensor: it must stay

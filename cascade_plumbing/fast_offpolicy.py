@@ -558,16 +558,17 @@ def argument_names(function: Callable) -> list[str]:
     return [p.name for p in parameters if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
 
 
+def argument_label(names: list[str] | tuple, i: int) -> str:
+    """The update's own name for its argument i (`qf`, `log_alpha`), else its position."""
+    return names[i] if i < len(names) else f"argument {i + 1}"
+
+
 def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out: dict, fast_out: dict,
-                 labels: list[str] | None = None) -> tuple[str | None, float]:
+                 labels: tuple | list = ()) -> tuple[str | None, float]:
     """What the fast update left differently from the script's (None: nothing beyond float64 rounding), and the
     largest relative difference of all."""
     if set(reference_out) != set(fast_out):
         return f"the update returns {sorted(reference_out)}, the fast path {sorted(fast_out)}", math.inf
-
-    def label(i: int) -> str:  # the update's own name for its argument i (`qf`, `log_alpha`), else its position
-        return labels[i] if labels is not None and i < len(labels) else f"argument {i + 1}"
-
     pairs: list[tuple[str, list, list, float, float]] = []  # (what, reference, fast, floor scale, tolerance)
     for i, (original, ref, new) in enumerate(zip(arguments, reference, fast)):
         if isinstance(original, nn.Module):
@@ -575,7 +576,8 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
             names = [name for name, _ in original.named_parameters()]
             ref_moves = [p.detach() - b for p, b in zip(ref.parameters(), before)]
             fast_moves = [p.detach() - b for p, b in zip(new.parameters(), before)]
-            pairs += [(f"the change of {label(i)}'s {name}", [r], [f], max_abs(ref_moves), STEP_TOLERANCE)
+            pairs += [(f"the change of {argument_label(labels, i)}'s {name}", [r], [f], max_abs(ref_moves),
+                       STEP_TOLERANCE)
                       for name, r, f in zip(names, ref_moves, fast_moves)]
         elif isinstance(original, torch.optim.Optimizer):
             ref_states = [v for p in (p for g in ref.param_groups for p in g["params"]) for v in ref.state[p].values()
@@ -583,11 +585,11 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
             new_states = [v for p in (p for g in new.param_groups for p in g["params"]) for v in new.state[p].values()
                           if isinstance(v, torch.Tensor) and v.dim()]
             if len(ref_states) != len(new_states):
-                return f"{label(i)} (an optimizer) holds another state", math.inf
-            pairs += [(f"{label(i)}'s optimizer state", [r], [f], max_abs(ref_states), TOLERANCE)
+                return f"{argument_label(labels, i)} (an optimizer) holds another state", math.inf
+            pairs += [(f"{argument_label(labels, i)}'s optimizer state", [r], [f], max_abs(ref_states), TOLERANCE)
                       for r, f in zip(ref_states, new_states)]
         elif isinstance(original, torch.Tensor):
-            pairs.append((label(i), [ref.detach()], [new.detach()], 0.0, TOLERANCE))
+            pairs.append((argument_label(labels, i), [ref.detach()], [new.detach()], 0.0, TOLERANCE))
     for key in reference_out:
         r, f = torch.as_tensor(reference_out[key]).double(), torch.as_tensor(fast_out[key]).double()
         pairs.append((f"'{key}'", [r.detach()], [f.detach()], 0.0, TOLERANCE))
@@ -685,14 +687,11 @@ class OffPolicyFastPath:
             with float64_by_default():
                 # twice: an explore that keeps state between calls (Ornstein-Uhlenbeck noise, sticky actions) shows
                 # in its second call, if not already in the names it binds (which the check then undoes)
-                before = KeptState(definition, {"actor": twin})
-                try:
+                with KeptState(definition, {"actor": twin}) as watch:
                     with untouched_random_streams(), torch.inference_mode():  # the script's draws
                         reference = [definition(twin, torch.as_tensor(rows), *extra).detach().numpy()
                                      for _ in range(2)]
-                    kept = before.changes()
-                finally:
-                    before.restore()
+                    kept = watch.changes()
                 if kept:
                     return f"explore keeps state between calls ({kept}), while the numpy acting path draws afresh"
                 with untouched_random_streams():  # the same draws again
@@ -748,7 +747,7 @@ class OffPolicyFastPath:
         """Run the script's update and the fast one on float64 copies, from the same random state; what differs."""
         start = time.perf_counter()
         names = argument_names(definition)
-        hooked = [f"{names[i] if i < len(names) else f'argument {i + 1}'}.{name}" for i, a in enumerate(arguments)
+        hooked = [f"{argument_label(names, i)}.{name}" for i, a in enumerate(arguments)
                   if isinstance(a, nn.Module) for name, p in a.named_parameters()
                   if p._backward_hooks or getattr(p, "_post_accumulate_grad_hooks", None)]
         if hooked:
@@ -757,12 +756,9 @@ class OffPolicyFastPath:
             with float64_by_default(), np.errstate(over="ignore", invalid="ignore"):
                 with untouched_random_streams():  # the script's draws (the run's streams stay where they are)
                     reference = float64_twins(arguments)
-                    before = KeptState(definition, {"args": arguments[0]})
-                    try:
+                    with KeptState(definition, {"args": arguments[0]}) as watch:  # (its call leaves nothing behind)
                         reference_out = definition(*reference)
-                        kept = before.changes()
-                    finally:
-                        before.restore()  # the check's call leaves nothing behind
+                        kept = watch.changes()
                     if kept:  # (a schedule of args, a counter: the script's update runs only in the checks)
                         name = getattr(definition, "__name__", "the update")
                         return f"{name} keeps state between calls ({kept}), which the fast update does not"
