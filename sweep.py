@@ -146,9 +146,10 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("cascade", CASCADE, "--n 6 --k 1000000"),
         ("cascade_global_lr", CASCADE, "--n 6 --k 1000000 --lr-schedule global"),
     ]),
-    "discrete": ("Fig. 16: discrete Cascade vs discrete PPO on discretized envs (10M steps, normalized as the paper's code)", [
-        ("cascade_discrete", "cascade_ppo_discrete.py", "--n 10 --k 1000000"),
-        ("ppo_discrete", "ppo_baseline_discrete.py", "--total-timesteps 10000000"),
+    "discrete": ("Fig. 16: discrete Cascade vs discrete PPO on discretized envs (10M steps, normalized as the paper's code; "
+                 "eval every 50k as results/)", [
+        ("cascade_discrete", "cascade_ppo_discrete.py", "--n 10 --k 1000000 --eval-every 50000"),
+        ("ppo_discrete", "ppo_baseline_discrete.py", "--total-timesteps 10000000 --eval-every 50000"),
     ]),
     # the SAC/DDPG scripts' defaults are the paper's code where its Appendix H is silent or differs: alpha fixed at
     # 0.2, 16-16 tanh DDPG nets with a 64-64 tanh critic and annealed LR, a restart (random warm-up, fresh targets)
