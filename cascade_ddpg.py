@@ -144,8 +144,10 @@ class Args:
     """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`; not with --eval-every 0)"""
 
     # Checkpoints, resuming, evaluating a saved model
+    checkpoint_every: int = 50_000
+    """also checkpoint every this many env steps, besides the end of every iteration (0: iteration ends only); a checkpoint holds the replay buffer (the rows added since the previous one go to the run folder's replay/)"""
     resume: str | None = None
-    """continue a killed run from its last iteration-boundary checkpoint (`runs/<run_name>` or a .pt file); the replay buffer restarts empty"""
+    """continue a killed run exactly from its latest checkpoint (`runs/<run_name>`, or its checkpoint.pt), replay buffer included"""
     evaluate: str | None = None
     """evaluate a saved model (`runs/<run_name>` or a checkpoint file) for --eval-episodes episodes and exit"""
     members: bool = False
@@ -385,7 +387,7 @@ def ddpg_update(args: Args, step_in_iteration: int, batch: tuple[torch.Tensor, .
 # ----------------------------------------------------------------------------------------------
 def train(args: Args, checkpoint: dict | None = None,
           on_iteration_start: Callable[[dict], None] | None = None) -> dict:
-    """Runs Cascade-DDPG (from scratch, or continuing an iteration-boundary `checkpoint`); returns the final actor
+    """Runs Cascade-DDPG (from scratch, or continuing a `checkpoint` exactly); returns the final actor
     and target actor, critic and target, buffer and run folder. `on_iteration_start` sees each iteration's state
     (used by the tests)."""
     validate(args)
@@ -412,11 +414,11 @@ def train(args: Args, checkpoint: dict | None = None,
     buffer = ReplayBuffer(buffer_capacity(args.buffer_size, args.n, args.k, args.keep_buffer), obs_dim, act_dim)
 
     if checkpoint is None:
-        global_step, start_iteration = run.start()
+        global_step, start_iteration, start_step = run.start()
         if args.eval_every:
             evaluate(run, actor, args, global_step)  # step 0, before the first net: the empty cascade outputs zeros (raw)
-    else:
-        global_step, start_iteration = run.restore(checkpoint)
+    else:  # the saved nets, replay buffer, env state, RNG streams and position in the run
+        global_step, start_iteration, start_step = run.restore(checkpoint, buffer)
         actor = actor_from_checkpoint(checkpoint, device)
         target_actor = actor_from_checkpoint(checkpoint, device, key="target_actor")
         qf.load_state_dict(checkpoint["qf"])
@@ -424,23 +426,28 @@ def train(args: Args, checkpoint: dict | None = None,
         load_optimizer(q_optimizer, checkpoint["q_optimizer"])
 
     for iteration in range(start_iteration, args.n + 1):
-        # --- a new Cascade iteration: new base net, emptied buffer, fresh actor optimizer; the critic kept (fresh
-        # with --reset-critic), its target, its optimizer and the target actor renewed (the restart) ---
-        if args.restart_on_new_net:
-            # the paper's code starts a new DDPG instance per net: its target actor is a copy of the whole
-            # cascade, its target critic a copy of the kept critic, and the critic optimizer is new
-            actor.add_base_net()
-            target_actor = copy.deepcopy(actor)
-        else:  # the target actor keeps its nets and gets the new one with the online net's very init
-            target_actor.add_base_net(actor.add_base_net())
-        if iteration > 1 and (args.reset_critic or args.restart_on_new_net):
-            if args.reset_critic:  # the ablation: a fresh critic
-                qf = make_critic()
-            qf_target = copy.deepcopy(qf)  # a target copied anew from the (kept or fresh) critic
-            q_optimizer = make_adam(list(qf.parameters()), args.learning_rate, args.adam_eps)
-        if not args.keep_buffer:
-            buffer.clear()
+        mid_iteration = iteration == start_iteration and start_step > 0
+        if not mid_iteration:  # (else: continuing the iteration a checkpoint was written in)
+            # --- a new Cascade iteration: new base net, emptied buffer; the critic kept (fresh
+            # with --reset-critic), its target, its optimizer and the target actor renewed (the restart) ---
+            if args.restart_on_new_net:
+                # the paper's code starts a new DDPG instance per net: its target actor is a copy of the whole
+                # cascade, its target critic a copy of the kept critic, and the critic optimizer is new
+                actor.add_base_net()
+                target_actor = copy.deepcopy(actor)
+            else:  # the target actor keeps its nets and gets the new one with the online net's very init
+                target_actor.add_base_net(actor.add_base_net())
+            if iteration > 1 and (args.reset_critic or args.restart_on_new_net):
+                if args.reset_critic:  # the ablation: a fresh critic
+                    qf = make_critic()
+                qf_target = copy.deepcopy(qf)  # a target copied anew from the (kept or fresh) critic
+                q_optimizer = make_adam(list(qf.parameters()), args.learning_rate, args.adam_eps)
+            if not args.keep_buffer:
+                buffer.clear()
+        # a fresh actor optimizer each iteration (over all its nets); continuing one, the saved one
         actor_optimizer = make_adam(list(actor.parameters()), args.learning_rate, args.adam_eps)
+        if mid_iteration:
+            load_optimizer(actor_optimizer, checkpoint["actor_optimizer"])
         run.iteration_start(iteration, actor.size, count_parameters(actor, qf), "actor + critic", global_step)
         if on_iteration_start is not None:
             on_iteration_start({"iteration": iteration, "actor": actor, "target_actor": target_actor, "qf": qf,
@@ -448,8 +455,9 @@ def train(args: Args, checkpoint: dict | None = None,
                                 "actor_optimizer": actor_optimizer, "buffer": buffer, "envs": envs,
                                 "next_obs": run.next_obs, "global_step": global_step})
 
-        logged: dict = {}  # the latest update's values; the actor's loss from the iteration's first actor update on
-        for step_in_iteration in range(args.k):
+        # the latest update's values; the actor's loss from the iteration's first actor update on
+        logged: dict = checkpoint["logged"] if mid_iteration else {}
+        for step_in_iteration in range(start_step if mid_iteration else 0, args.k):
             global_step += 1
             if args.anneal_lr:  # the paper's code: linearly to 0 within each iteration
                 frac = 1.0 - step_in_iteration / args.k
@@ -491,15 +499,21 @@ def train(args: Args, checkpoint: dict | None = None,
             run.tick(global_step, actor.size)
             if args.eval_every and global_step % args.eval_every == 0:
                 evaluate(run, actor, args, global_step)
+            if run.checkpoint_due(global_step) and step_in_iteration + 1 < args.k:  # (the iteration's end: below)
+                run.guard_non_finite([actor, qf], global_step, iteration)
+                run.save_progress(iteration, step_in_iteration + 1, global_step, saved_nets(
+                    actor, target_actor, qf, qf_target, q_optimizer, actor_optimizer, logged), buffer)
 
-        # --- end of the iteration: member returns, then an atomic checkpoint ---
+        # --- end of the iteration: member returns (and at the run's end the final policy's), then an atomic
+        # checkpoint: a run stopped after it has nothing left to log ---
         if args.eval_every and args.eval_members:
             evaluate(run, actor, args, global_step, members=True)
+        if iteration == args.n and args.eval_every and global_step % args.eval_every:
+            evaluate(run, actor, args, global_step)  # the final policy, if the last step was not an eval step
         run.guard_non_finite([actor, qf], global_step, iteration)
-        run.save_iteration(iteration, global_step, saved_nets(actor, target_actor, qf, qf_target, q_optimizer))
+        run.save_progress(iteration, args.k, global_step, saved_nets(
+            actor, target_actor, qf, qf_target, q_optimizer, actor_optimizer, logged), buffer)
 
-    if args.eval_every and global_step % args.eval_every:
-        evaluate(run, actor, args, global_step)  # the final policy, if the last step was not an eval step
     run.close(global_step)
     return {"actor": actor, "target_actor": target_actor, "qf": qf, "qf_target": qf_target, "buffer": buffer,
             "run_dir": run.run_dir, "global_step": global_step, "fast_path": fast}
@@ -575,22 +589,25 @@ def validate(args: Args) -> None:
     check_replay_settings(args, bounds_needed_because="the actor's tanh outputs are rescaled to finite bounds")
 
 
-CHECKPOINT_FORMAT = "cascade_ddpg/2"  # /2: the paper's-code defaults (nets, LR, new-net restart, clipping)
+# /2: the paper's-code defaults (nets, LR, new-net restart, clipping); /3: checkpoints inside an iteration, with the
+# replay buffer
+CHECKPOINT_FORMAT = "cascade_ddpg/3"
 
 
 def saved_nets(actor: CascadeActor, target_actor: CascadeActor, qf: QNetworks, qf_target: QNetworks,
-               q_optimizer: torch.optim.Optimizer) -> dict:
-    """What a checkpoint holds of the algorithm (the replay buffer is not saved); the run's state is added to it.
-    The actor optimizer is not saved: a resumed run starts a new iteration, which recreates it."""
+               q_optimizer: torch.optim.Optimizer, actor_optimizer: torch.optim.Optimizer, logged: dict) -> dict:
+    """What a checkpoint holds of the algorithm: every net, target and optimizer and the latest update's values
+    (logged every 100 steps); the run's state and the replay buffer are added to it."""
     return {"actor": actor.state_dict(), "target_actor": target_actor.state_dict(), "actor_size": actor.size,
-            "qf": qf.state_dict(), "qf_target": qf_target.state_dict(), "q_optimizer": q_optimizer.state_dict()}
+            "qf": qf.state_dict(), "qf_target": qf_target.state_dict(), "q_optimizer": q_optimizer.state_dict(),
+            "actor_optimizer": actor_optimizer.state_dict(), "logged": logged}
 
 
 def load_checkpoint(path: str) -> dict:
     """A cascade_ddpg checkpoint (`runs/<run>`, its latest, or a file); one line if it is missing, corrupt, another
-    script's, or of a cascade_ddpg.py older than the paper's-code defaults (nets, LR, restart, clipping)."""
+    script's, or of an older cascade_ddpg.py (which it cannot resume exactly)."""
     return load_script_checkpoint(path, CHECKPOINT_FORMAT,
-                                  older_note=f", before the paper's-code defaults of {CHECKPOINT_FORMAT}")
+                                  older_note=", before checkpoints held the replay buffer")
 
 
 def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu", key: str = "actor") -> CascadeActor:
@@ -623,7 +640,7 @@ def evaluate_saved(args: Args) -> dict:
 
 def finished(args: Args, checkpoint: dict) -> bool:
     """Whether `checkpoint` ends the run: all n iterations done (resuming it has nothing to do)."""
-    return checkpoint["iteration"] >= args.n
+    return checkpoint["iteration"] >= args.n and checkpoint["steps_done"] == args.k
 
 
 def main() -> None:

@@ -136,8 +136,10 @@ class Args:
     """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`; not with --eval-every 0)"""
 
     # Checkpoints, resuming, evaluating a saved model
+    checkpoint_every: int = 50_000
+    """also checkpoint every this many env steps, besides the end of every iteration (0: iteration ends only); a checkpoint holds the replay buffer (the rows added since the previous one go to the run folder's replay/)"""
     resume: str | None = None
-    """continue a killed run from its last iteration-boundary checkpoint (`runs/<run_name>` or a .pt file); the replay buffer restarts empty"""
+    """continue a killed run exactly from its latest checkpoint (`runs/<run_name>`, or its checkpoint.pt), replay buffer included"""
     evaluate: str | None = None
     """evaluate a saved model (`runs/<run_name>` or a checkpoint file) for --eval-episodes episodes and exit"""
     members: bool = False
@@ -412,7 +414,7 @@ def sac_update(args: Args, step_in_iteration: int, batch: tuple[torch.Tensor, ..
 # ----------------------------------------------------------------------------------------------
 def train(args: Args, checkpoint: dict | None = None,
           on_iteration_start: Callable[[dict], None] | None = None) -> dict:
-    """Runs Cascade-SAC (from scratch, or continuing an iteration-boundary `checkpoint`); returns the final actor,
+    """Runs Cascade-SAC (from scratch, or continuing a `checkpoint` exactly); returns the final actor,
     critics, alpha, buffer and run folder. `on_iteration_start` sees the state of each iteration (used by the tests)."""
     validate(args)
     set_threads(args.torch_threads)
@@ -436,11 +438,11 @@ def train(args: Args, checkpoint: dict | None = None,
     buffer = ReplayBuffer(buffer_capacity(args.buffer_size, args.n, args.k, args.keep_buffer), obs_dim, act_dim)
 
     if checkpoint is None:
-        global_step, start_iteration = run.start()
+        global_step, start_iteration, start_step = run.start()
         if args.eval_every:
             evaluate(run, actor, args, global_step)  # step 0, before the first net: the empty cascade outputs zeros (raw)
-    else:
-        global_step, start_iteration = run.restore(checkpoint)
+    else:  # the saved nets, replay buffer, env state, RNG streams and position in the run
+        global_step, start_iteration, start_step = run.restore(checkpoint, buffer)
         actor = actor_from_checkpoint(checkpoint, device)
         qf.load_state_dict(checkpoint["qf"])
         qf_target.load_state_dict(checkpoint["qf_target"])
@@ -451,19 +453,24 @@ def train(args: Args, checkpoint: dict | None = None,
         alpha = checkpoint["alpha"]
 
     for iteration in range(start_iteration, args.n + 1):
-        # --- a new Cascade iteration: new base net, emptied buffer, fresh actor optimizer; the critics kept (fresh
-        # with --reset-critic), their targets re-copied and their optimizer renewed (the restart) ---
-        actor.add_base_net()
-        if iteration > 1 and (args.reset_critic or args.restart_on_new_net):
-            if args.reset_critic:  # the ablation: fresh critics
-                qf = QNetworks(obs_dim, act_dim).to(device)
-            # targets copied anew from the (kept or fresh) critics, a new critic optimizer: the paper's code starts
-            # a new SAC instance per net
-            qf_target = copy.deepcopy(qf)
-            q_optimizer = make_adam(list(qf.parameters()), args.q_lr)
-        if not args.keep_buffer:
-            buffer.clear()
+        mid_iteration = iteration == start_iteration and start_step > 0
+        if not mid_iteration:  # (else: continuing the iteration a checkpoint was written in)
+            # --- a new Cascade iteration: new base net, emptied buffer; the critics kept (fresh
+            # with --reset-critic), their targets re-copied and their optimizer renewed (the restart) ---
+            actor.add_base_net()
+            if iteration > 1 and (args.reset_critic or args.restart_on_new_net):
+                if args.reset_critic:  # the ablation: fresh critics
+                    qf = QNetworks(obs_dim, act_dim).to(device)
+                # targets copied anew from the (kept or fresh) critics, a new critic optimizer: the paper's code starts
+                # a new SAC instance per net
+                qf_target = copy.deepcopy(qf)
+                q_optimizer = make_adam(list(qf.parameters()), args.q_lr)
+            if not args.keep_buffer:
+                buffer.clear()
+        # a fresh actor optimizer each iteration (over all its nets); continuing one, the saved one
         actor_optimizer = make_adam(list(actor.parameters()), args.policy_lr)
+        if mid_iteration:
+            load_optimizer(actor_optimizer, checkpoint["actor_optimizer"])
         run.iteration_start(iteration, actor.size, count_parameters(actor, qf), "actor + critics", global_step)
         if on_iteration_start is not None:
             on_iteration_start({"iteration": iteration, "actor": actor, "qf": qf, "qf_target": qf_target,
@@ -471,8 +478,9 @@ def train(args: Args, checkpoint: dict | None = None,
                                 "log_alpha": log_alpha, "a_optimizer": a_optimizer, "buffer": buffer,
                                 "envs": envs, "next_obs": run.next_obs, "global_step": global_step})
 
-        logged: dict = {}  # the latest update's values; the actor's loss from the iteration's first actor update on
-        for step_in_iteration in range(args.k):
+        # the latest update's values; the actor's loss from the iteration's first actor update on
+        logged: dict = checkpoint["logged"] if mid_iteration else {}
+        for step_in_iteration in range(start_step if mid_iteration else 0, args.k):
             global_step += 1
             # CleanRL: uniform actions for the first learning_starts steps, updates after learning_starts + 1.
             # The paper's code restarts that count with each net; without the restart, only the run's first
@@ -516,15 +524,21 @@ def train(args: Args, checkpoint: dict | None = None,
             run.tick(global_step, actor.size)
             if args.eval_every and global_step % args.eval_every == 0:
                 evaluate(run, actor, args, global_step)
+            if run.checkpoint_due(global_step) and step_in_iteration + 1 < args.k:  # (the iteration's end: below)
+                run.guard_non_finite([actor, qf], global_step, iteration)
+                run.save_progress(iteration, step_in_iteration + 1, global_step, saved_nets(
+                    actor, qf, qf_target, q_optimizer, actor_optimizer, log_alpha, a_optimizer, alpha, logged), buffer)
 
-        # --- end of the iteration: member returns, then an atomic checkpoint ---
+        # --- end of the iteration: member returns (and at the run's end the final policy's), then an atomic
+        # checkpoint: a run stopped after it has nothing left to log ---
         if args.eval_every and args.eval_members:
             evaluate(run, actor, args, global_step, members=True)
+        if iteration == args.n and args.eval_every and global_step % args.eval_every:
+            evaluate(run, actor, args, global_step)  # the final policy, if the last step was not an eval step
         run.guard_non_finite([actor, qf], global_step, iteration)
-        run.save_iteration(iteration, global_step, saved_nets(actor, qf, qf_target, q_optimizer, log_alpha, a_optimizer, alpha))
+        run.save_progress(iteration, args.k, global_step, saved_nets(
+            actor, qf, qf_target, q_optimizer, actor_optimizer, log_alpha, a_optimizer, alpha, logged), buffer)
 
-    if args.eval_every and global_step % args.eval_every:
-        evaluate(run, actor, args, global_step)  # the final policy, if the last step was not an eval step
     run.close(global_step)
     return {"actor": actor, "qf": qf, "qf_target": qf_target, "buffer": buffer, "run_dir": run.run_dir,
             "global_step": global_step, "alpha": alpha, "fast_path": fast}
@@ -601,22 +615,27 @@ def validate(args: Args) -> None:
     check_replay_settings(args, bounds_needed_because="SAC squashes actions into finite bounds")
 
 
-CHECKPOINT_FORMAT = "cascade_sac/2"  # /2: the paper's-code defaults (alpha, log-std, new-net restart, clipping)
+# /2: the paper's-code defaults (alpha, log-std, new-net restart, clipping); /3: checkpoints inside an iteration,
+# with the replay buffer
+CHECKPOINT_FORMAT = "cascade_sac/3"
 
 
 def saved_nets(actor: CascadeActor, qf: QNetworks, qf_target: QNetworks, q_optimizer: torch.optim.Optimizer,
-               log_alpha: torch.Tensor, a_optimizer: torch.optim.Optimizer, alpha: float) -> dict:
-    """What a checkpoint holds of the algorithm (the replay buffer is not saved); the run's state is added to it."""
+               actor_optimizer: torch.optim.Optimizer, log_alpha: torch.Tensor, a_optimizer: torch.optim.Optimizer,
+               alpha: float, logged: dict) -> dict:
+    """What a checkpoint holds of the algorithm: every net, target and optimizer, the temperature and the latest
+    update's values (logged every 100 steps); the run's state and the replay buffer are added to it."""
     return {"actor": actor.state_dict(), "actor_size": actor.size, "qf": qf.state_dict(),
             "qf_target": qf_target.state_dict(), "q_optimizer": q_optimizer.state_dict(),
-            "log_alpha": log_alpha.detach().cpu(), "a_optimizer": a_optimizer.state_dict(), "alpha": alpha}
+            "actor_optimizer": actor_optimizer.state_dict(), "log_alpha": log_alpha.detach().cpu(),
+            "a_optimizer": a_optimizer.state_dict(), "alpha": alpha, "logged": logged}
 
 
 def load_checkpoint(path: str) -> dict:
     """A cascade_sac checkpoint (`runs/<run>`, its latest, or a file); one line if it is missing, corrupt, another
-    script's, or of a cascade_sac.py older than the paper's-code defaults (alpha, log-std, restart, clipping)."""
+    script's, or of an older cascade_sac.py (which it cannot resume exactly)."""
     return load_script_checkpoint(path, CHECKPOINT_FORMAT,
-                                  older_note=f", before the paper's-code defaults of {CHECKPOINT_FORMAT}")
+                                  older_note=", before checkpoints held the replay buffer")
 
 
 def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") -> CascadeActor:
@@ -645,7 +664,7 @@ def evaluate_saved(args: Args) -> dict:
 
 def finished(args: Args, checkpoint: dict) -> bool:
     """Whether `checkpoint` ends the run: all n iterations done (resuming it has nothing to do)."""
-    return checkpoint["iteration"] >= args.n
+    return checkpoint["iteration"] >= args.n and checkpoint["steps_done"] == args.k
 
 
 def main() -> None:

@@ -164,6 +164,9 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
 BUDGET_FLAGS = ("--k", "--total-timesteps", "--cycle-steps")
 MIN_BUDGET = 2048  # one PPO rollout: a scaled budget (or checkpoint cadence) never goes below it
 CADENCE_FLAG = "--checkpoint-every"  # scaled too; 0 (checkpoints at iteration ends only) stays 0
+# the off-policy warm-up (uniform-random steps before updates, after each new net) scales with the budget it is part of;
+# it changes what a run computes, so the scaled default is part of the run's identity (unlike the cadence)
+WARMUP_FLAG = "--learning-starts"
 
 
 @dataclass
@@ -223,16 +226,19 @@ def tracking_flags(args: Args, sweep_dir: str) -> list[str]:
 
 def scale_flags(flags: list[str], scale: float) -> list[str]:
     """Budgets and the checkpoint cadence (`--k 1000000` or `--k=1000000`) times `scale`, never below one PPO
-    rollout; a cadence of 0 (no checkpoints between iteration ends) stays 0."""
+    rollout; a cadence of 0 (no checkpoints between iteration ends) stays 0. The off-policy warm-up
+    (--learning-starts) times `scale` too, with no floor."""
     def scaled(name: str, value: str) -> str:
         if name == CADENCE_FLAG and int(value) == 0:
             return value
+        if name == WARMUP_FLAG:
+            return str(int(round(int(value) * scale)))
         return str(max(int(round(int(value) * scale)), MIN_BUDGET))
 
     out = list(flags)
     for i, flag in enumerate(out):
         name, eq, value = flag.partition("=")
-        if name not in (*BUDGET_FLAGS, CADENCE_FLAG):
+        if name not in (*BUDGET_FLAGS, CADENCE_FLAG, WARMUP_FLAG):
             continue
         if eq:
             out[i] = f"{name}={scaled(name, value)}"
@@ -242,8 +248,8 @@ def scale_flags(flags: list[str], scale: float) -> list[str]:
 
 
 @functools.cache
-def default_checkpoint_every(script: str) -> int | None:
-    """The script's default --checkpoint-every (its Args field), or None where it has no such flag."""
+def script_default(script: str, field: str) -> int | None:
+    """The script's default of its Args field `field` (e.g. checkpoint_every), or None where it has no such flag."""
     try:
         with open(os.path.join(ROOT, script)) as f:
             tree = ast.parse(f.read())
@@ -252,7 +258,7 @@ def default_checkpoint_every(script: str) -> int | None:
     for node in tree.body:
         if isinstance(node, ast.ClassDef) and node.name == "Args":
             for item in node.body:
-                if isinstance(item, ast.AnnAssign) and getattr(item.target, "id", None) == "checkpoint_every":
+                if isinstance(item, ast.AnnAssign) and getattr(item.target, "id", None) == field:
                     try:
                         return ast.literal_eval(item.value)
                     except ValueError:
@@ -263,10 +269,19 @@ def default_checkpoint_every(script: str) -> int | None:
 def scaled_cadence(script: str, flags: list[str], scale: float) -> list[str]:
     """A scaled run whose template leaves --checkpoint-every at the script's default gets that default scaled
     (a run scaled down 100x would otherwise write no checkpoint before its end, and restart from zero when killed)."""
-    default = default_checkpoint_every(script)
+    default = script_default(script, "checkpoint_every")
     if scale == 1 or not default or any(flag.partition("=")[0] == CADENCE_FLAG for flag in flags):
         return []
     return [CADENCE_FLAG, scale_flags([CADENCE_FLAG, str(default)], scale)[1]]
+
+
+def scaled_warmup(script: str, flags: list[str], scale: float) -> list[str]:
+    """A scaled off-policy run whose template leaves --learning-starts at the script's default gets that default
+    scaled (SAC's 5000 random steps would otherwise fill a whole --k 5000 iteration of a 1% run)."""
+    default = script_default(script, "learning_starts")
+    if scale == 1 or default is None or any(flag.partition("=")[0] == WARMUP_FLAG for flag in flags):
+        return []
+    return [WARMUP_FLAG, scale_flags([WARMUP_FLAG, str(default)], scale)[1]]
 
 
 def expand(args: Args) -> list[Run]:
@@ -298,7 +313,8 @@ def expand(args: Args) -> list[Run]:
     for env_id in args.envs:
         for seed in seeds:
             for label, script, flags in templates:
-                run = Run(label, script, scale_flags(flags, args.scale), env_id, seed,
+                run = Run(label, script, scale_flags(flags, args.scale) + scaled_warmup(script, flags, args.scale),
+                          env_id, seed,
                           scaled_cadence(script, flags, args.scale))
                 if run.run_id not in seen:  # presets share some runs (e.g. standard Cascade)
                     seen.add(run.run_id)

@@ -2,7 +2,7 @@
 optimizer step, as zero_grad/backward/step with less overhead), the checks of
 the settings they both have, the evaluation episodes, --evaluate of a saved model, and a run's bookkeeping
 (`OffPolicyRun`, on `record.RunRecord`: env steps into the replay buffer, the logs, evaluations, the non-finite
-guard, the checkpoint at the end of every iteration and resuming from it).
+guard, the checkpoints, with the replay buffer, and resuming from them exactly).
 
 What is evaluated, how often and on how many episodes, like the nets, the losses and the training loop, is the
 script's."""
@@ -26,7 +26,7 @@ from .errors import fail
 from .evaluation import EvaluationEnvs
 from .fast import plain_fused_adam
 from .record import RunRecord
-from .replay import ReplayBuffer, available_memory, buffer_capacity, store_transition
+from .replay import ReplayBuffer, ReplayFiles, available_memory, buffer_capacity, store_transition
 from .runs import set_threads
 from .tracking import log_new_videos
 
@@ -169,9 +169,9 @@ class OffPolicyRun(RunRecord):
 
     Beside the run folder of `RunRecord` (TensorBoard `writer`, W&B, videos, progress, `checkpoint_path`), it
     steps the training env (`next_obs` is the observation the next action is chosen for) into the replay
-    buffer, runs the evaluations the script asks for, and writes the checkpoint at the end of every iteration,
-    without the replay buffer: a resumed run starts its next iteration with an empty one, as every iteration of
-    standard Cascade does."""
+    buffer, runs the evaluations the script asks for, and writes the checkpoints the script asks for (at the end of
+    every iteration and every --checkpoint-every steps): with the replay buffer's rows (`ReplayFiles`, in the run
+    folder's replay/), the RNG streams and the env's state, so that a resumed run continues exactly."""
 
     def __init__(self, args: Any, checkpoint: dict | None, envs: gym.vector.VectorEnv, checkpoint_format: str,
                  rates: str):
@@ -187,24 +187,37 @@ class OffPolicyRun(RunRecord):
             self.evaluator = Evaluator(args.env_id, args.eval_episodes, args.seed, args.obs_reward_clip)
         self.eval_calls = 0
         self.next_obs: np.ndarray | None = None
+        self.replay: ReplayFiles | None = None  # the replay buffer's rows on disk (made with the buffer's first save)
 
     # --- the start of a run, or where a resumed one continues ---
-    def start(self) -> tuple[int, int]:
-        """A new run: the seeded env's first observation; returns (global_step, first iteration) = (0, 1)."""
+    def start(self) -> tuple[int, int, int]:
+        """A new run: the seeded env's first observation; returns (global_step, iteration, steps of it done) =
+        (0, 1, 0)."""
         self.start_time = time.time()
         self.next_obs, _ = self.envs.reset(seed=self.args.seed)
         self.envs.single_action_space.seed(self.args.seed)  # the uniform random actions at the start of the run
-        return 0, 1
+        return 0, 1, 0
 
-    def restore(self, checkpoint: dict) -> tuple[int, int]:
-        """The checkpoint's env state, next observation, RNG streams and evaluation count (the script restores
-        its nets); returns (global_step, the iteration the run continues with)."""
-        iteration = checkpoint["iteration"] + 1
-        global_step, self.next_obs = self.restore_envs(checkpoint, note=f" (iteration {iteration}, empty replay buffer)")
+    def restore(self, checkpoint: dict, buffer: ReplayBuffer) -> tuple[int, int, int]:
+        """The checkpoint's env state, next observation, RNG streams, evaluation count and, where the run goes on
+        using it, replay buffer (the script restores its nets); returns (global_step, iteration, steps of it done)
+        of where the run continues: (.., the next iteration, 0) after an iteration's end."""
+        iteration, steps_done = checkpoint["iteration"], checkpoint["steps_done"]
+        if steps_done == self.args.k:
+            iteration, steps_done = iteration + 1, 0
+        # a new iteration empties the buffer (unless --keep-buffer): its rows are not needed then
+        needs_buffer = steps_done > 0 or self.args.keep_buffer
+        note = f" (iteration {iteration}, step {steps_done} of it"
+        global_step, self.next_obs = self.restore_envs(
+            checkpoint, note=note + (f", {checkpoint['replay']['end'] - checkpoint['replay']['first']} replay rows)"
+                                     if needs_buffer else ")"))
         # the uniform random warm-up actions of each new net come from the action space's own RNG
         self.envs.single_action_space.np_random.bit_generator.state = checkpoint["action_space_rng"]
         self.eval_calls = checkpoint["eval_calls"]
-        return global_step, iteration
+        self.replay = ReplayFiles(self.run_dir, buffer)
+        if needs_buffer:
+            self.replay.restore(checkpoint["replay"])
+        return global_step, iteration, steps_done
 
     # --- acting in the training env ---
     def random_actions(self) -> np.ndarray:
@@ -265,19 +278,27 @@ class OffPolicyRun(RunRecord):
             self.progress.message(f"global_step={step}, members/return/net_{net}={returns.mean():.1f}")
 
     # --- the end of an iteration, and of the run ---
-    def save_iteration(self, iteration: int, global_step: int, nets: dict) -> None:
-        """The atomic checkpoint of the end of `iteration`, also kept as iteration_<i>.pt: the script's `nets`
-        (its nets, optimizers and whatever else it trains) and the run's state."""
+    def save_progress(self, iteration: int, steps_done: int, global_step: int, nets: dict,
+                      buffer: ReplayBuffer) -> None:
+        """The atomic checkpoint after `steps_done` steps of `iteration` (all --k of them: its end, also kept as
+        iteration_<i>.pt): the script's `nets` (its nets, optimizers and whatever else it trains and keeps), the run's
+        state and the replay buffer's rows (written to replay/ first; the checkpoint records which)."""
+        if self.replay is None or self.replay.buffer is not buffer:
+            self.replay = ReplayFiles(self.run_dir, buffer)
+        replay = self.replay.save()
         payload = {
             "format": self.checkpoint_format, "args": asdict(self.args), "obs_dim": self.obs_dim,
             "act_dim": self.act_dim, "action_low": self.action_low, "action_high": self.action_high,
-            "iteration": iteration, **nets, "next_obs": self.next_obs.copy(),
+            "iteration": iteration, "steps_done": steps_done, **nets, "next_obs": self.next_obs.copy(),
             "action_space_rng": self.envs.single_action_space.np_random.bit_generator.state,
-            "eval_calls": self.eval_calls,
+            "eval_calls": self.eval_calls, "replay": replay,
         }
-        self.save(payload, global_step, iteration_end=iteration)
-        self.progress.message(f"iteration {iteration} done: global_step={global_step}, "
-                              f"SPS={int(self.sps(global_step))}")
+        end = steps_done == self.args.k
+        self.save(payload, global_step, iteration_end=iteration if end else None)
+        self.replay.prune(replay)
+        if end:
+            self.progress.message(f"iteration {iteration} done: global_step={global_step}, "
+                                  f"SPS={int(self.sps(global_step))}")
 
     def close(self, global_step: int) -> None:
         if self.evaluator is not None:

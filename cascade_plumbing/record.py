@@ -138,6 +138,9 @@ class RunRecord:
         id); at the end of iteration i also as iteration_<i>.pt."""
         payload.update(elapsed=time.time() - self.start_time, env_states=self.envs.call("get_state"),
                        rng=rng_states(), wandb_run_id=self.wandb_run_id, global_step=global_step)
+        # the logs up to this step on disk first: a resume hides what was logged after the checkpoint's step
+        # (purge_step), and a SIGKILL right after the checkpoint would lose what the writer still held
+        self.writer.flush()
         save_checkpoint(self.checkpoint_path, payload)
         if iteration_end is not None:
             atomic_copy(self.checkpoint_path, os.path.join(self.run_dir, f"iteration_{iteration_end}.pt"))

@@ -1,9 +1,16 @@
-"""The replay buffer of the off-policy scripts (cascade_sac.py, cascade_ddpg.py), and the memory it takes."""
+"""The replay buffer of the off-policy scripts (cascade_sac.py, cascade_ddpg.py), the memory it takes, and its
+rows on disk (`ReplayFiles`), so that a checkpoint holds the buffer without rewriting it."""
 
 from __future__ import annotations
 
+import glob
+import os
+import zlib
+
 import numpy as np
 import torch
+
+from .errors import fail
 
 
 class ReplayBuffer:
@@ -21,6 +28,9 @@ class ReplayBuffer:
         self.obs, self.next_obs = self.data[:, :o], self.data[:, o : 2 * o]
         self.actions, self.rewards, self.dones = self.data[:, 2 * o : 2 * o + a], self.data[:, -2], self.data[:, -1]
         self.pos = self.size = 0
+        # The buffer as a window on the log of every row ever added: `added` rows so far, the latest `clear` at log
+        # row `start`; log row r sits at ring position (r - start) % capacity. ReplayFiles writes the log to disk.
+        self.added = self.start = 0
 
     @staticmethod
     def row_width(obs_dim: int, act_dim: int) -> int:
@@ -44,10 +54,21 @@ class ReplayBuffer:
             row[-2], row[-1] = reward[i], done[i]
             self.pos = (self.pos + 1) % self.capacity
             self.size = min(self.size + 1, self.capacity)
+            self.added += 1
 
     def clear(self) -> None:
         """Empty the buffer: later samples only see rows added from now on."""
         self.pos = self.size = 0
+        self.start = self.added
+
+    def log_slices(self, first: int, end: int) -> list[np.ndarray]:
+        """The rows of log rows [first, end) (all inside the buffer), in log order: at most two ring slices."""
+        if first >= end:
+            return []
+        lo, hi = (first - self.start) % self.capacity, (end - self.start) % self.capacity
+        if lo < hi:
+            return [self.data[lo:hi]]
+        return [self.data[lo:], self.data[:hi]] if hi else [self.data[lo:]]
 
     def sample(self, batch_size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
         """(obs, actions, rewards, next_obs, dones) of `batch_size` uniformly drawn rows (numpy's global RNG)."""
@@ -55,6 +76,92 @@ class ReplayBuffer:
         rows = torch.from_numpy(np.take(self.data, np.random.randint(0, self.size, size=batch_size), axis=0)).to(device)
         o, a = self.obs_dim, self.act_dim
         return rows[:, :o], rows[:, 2 * o : 2 * o + a], rows[:, -2], rows[:, o : 2 * o], rows[:, -1]
+
+
+class ReplayFiles:
+    """The replay buffer's rows on disk, in the run folder's `replay/`, so that a checkpoint can hold the buffer at
+    the cost of the rows added since the previous one.
+
+    The files hold the buffer's log (`ReplayBuffer.added`): log row r is row r % SEGMENT_ROWS of
+    `rows_<r // SEGMENT_ROWS>.f32`. A log row is written once and never changed, so a checkpoint that records
+    "the buffer is log rows [first, end)" stays valid whatever the run writes after it; rows no checkpoint can need
+    any more (before the latest checkpoint's first row) are deleted with their segment. Each checkpoint records the
+    CRC-32 of its rows, checked on resume."""
+
+    SEGMENT_ROWS = 1 << 16
+
+    def __init__(self, run_dir: str, buffer: ReplayBuffer):
+        self.folder, self.buffer = os.path.join(run_dir, "replay"), buffer
+        self.row_bytes = buffer.data.shape[1] * buffer.data.itemsize
+        self.flushed = 0  # log rows before this one are on disk
+
+    def segment(self, index: int) -> str:
+        return os.path.join(self.folder, f"rows_{index:06d}.f32")
+
+    def save(self) -> dict:
+        """Write the rows added since the last save (fsync'd), before the checkpoint that records them; returns
+        what the checkpoint holds of the buffer."""
+        buffer = self.buffer
+        first, end = buffer.added - buffer.size, buffer.added
+        os.makedirs(self.folder, exist_ok=True)
+        row = max(self.flushed, first)
+        for part in buffer.log_slices(row, end):
+            while len(part):
+                index, offset = divmod(row, self.SEGMENT_ROWS)
+                count = min(len(part), self.SEGMENT_ROWS - offset)
+                fd = os.open(self.segment(index), os.O_WRONLY | os.O_CREAT, 0o644)
+                try:
+                    os.pwrite(fd, part[:count].tobytes(), offset * self.row_bytes)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                part, row = part[count:], row + count
+        self.flushed = end
+        crc = 0
+        for part in buffer.log_slices(first, end):
+            crc = zlib.crc32(memoryview(np.ascontiguousarray(part)).cast("B"), crc)
+        return {"first": first, "end": end, "start": buffer.start, "crc32": crc}
+
+    def prune(self, saved: dict) -> None:
+        """After the checkpoint of `saved` is written: delete the segments that hold only rows before its first."""
+        for path in glob.glob(os.path.join(glob.escape(self.folder), "rows_*.f32")):
+            index = int(os.path.basename(path)[5:-4])
+            if (index + 1) * self.SEGMENT_ROWS <= saved["first"]:
+                os.remove(path)
+
+    def restore(self, saved: dict) -> None:
+        """Refill the (new, empty) buffer with the rows a checkpoint recorded; one line if they are gone or differ."""
+        buffer, first, end = self.buffer, saved["first"], saved["end"]
+        buffer.added, buffer.start = end, saved["start"]
+        buffer.size, buffer.pos = end - first, (end - buffer.start) % buffer.capacity
+        row = first
+        for part in buffer.log_slices(first, end):
+            filled = 0
+            while filled < len(part):
+                index, offset = divmod(row, self.SEGMENT_ROWS)
+                count = min(len(part) - filled, self.SEGMENT_ROWS - offset)
+                try:
+                    with open(self.segment(index), "rb") as f:
+                        f.seek(offset * self.row_bytes)
+                        raw = f.read(count * self.row_bytes)
+                except OSError:
+                    raw = b""
+                if len(raw) != count * self.row_bytes:
+                    self.missing(first, end)
+                part[filled : filled + count] = np.frombuffer(raw, dtype=part.dtype).reshape(count, -1)
+                filled, row = filled + count, row + count
+        crc = 0
+        for part in buffer.log_slices(first, end):
+            crc = zlib.crc32(memoryview(np.ascontiguousarray(part)).cast("B"), crc)
+        if crc != saved["crc32"]:
+            fail(f"the replay rows in {self.folder} differ from what the checkpoint recorded (CRC mismatch); they "
+                 "were changed or belong to another run: resume the run from its own folder's checkpoint.pt")
+        self.flushed = end
+
+    def missing(self, first: int, end: int) -> None:
+        fail(f"the checkpoint's replay buffer (log rows {first}..{end - 1}) is not in {self.folder}: a checkpoint "
+             "resumes with its run folder's replay/ files, which keep only what the latest checkpoint needs; resume "
+             "the run folder itself (its checkpoint.pt), or start a new run")
 
 
 def store_transition(buffer: ReplayBuffer, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray,

@@ -33,7 +33,7 @@ def test_every_preset_expands_to_the_papers_grid(preset):
                 original = dict(zip(*[iter(dict((lab, f) for lab, _, f in entries)[run.label].split())] * 2))
                 assert int(run.flags[run.flags.index(flag) + 1]) == max(round(int(original[flag]) * 0.01), 2048)
         # and a checkpoint cadence scaled with them (the PPO scripts' default 100000: one rollout)
-        assert run.cadence == ([] if run.script in ("cascade_sac.py", "cascade_ddpg.py") else ["--checkpoint-every", "2048"])
+        assert run.cadence == ["--checkpoint-every", "2048"]
 
 
 def test_scale_scales_the_checkpoint_cadence():
@@ -45,10 +45,10 @@ def test_scale_scales_the_checkpoint_cadence():
         return run
 
     for script in ("cascade_ppo_continuous.py", "ppo_baseline.py", "cascade_ppo_discrete.py", "ppo_baseline_discrete.py"):
-        assert sweep.default_checkpoint_every(script) == 100_000, script
-    for script in ("cascade_sac.py", "cascade_ddpg.py"):  # no such flag: none is passed
-        assert sweep.default_checkpoint_every(script) is None
-        assert one(f"{script} --n 2 --k 100000", 0.01).cadence == []
+        assert sweep.script_default(script, "checkpoint_every") == 100_000, script
+    for script in ("cascade_sac.py", "cascade_ddpg.py"):
+        assert sweep.script_default(script, "checkpoint_every") == 50_000, script
+        assert one(f"{script} --n 2 --k 1000000", 0.01).cadence == ["--checkpoint-every", "2048"]
     run = one("cascade_ppo_continuous.py --n 6 --k 1000000", 0.01)
     assert run.flags == ["--n", "6", "--k", "10000"] and run.cadence == ["--checkpoint-every", "2048"]
     command = run.command(sys.executable, "/tmp/none")
@@ -68,6 +68,26 @@ def test_scale_scales_the_checkpoint_cadence():
     # Fig. 3's LR cycle shrinks with the run it divides (6 cycles either way)
     assert one("ppo_baseline.py --total-timesteps 6000000 --cycle-steps 1000000", 0.01).flags == \
         ["--total-timesteps", "60000", "--cycle-steps", "10000"]
+
+
+def test_scale_works_for_sac_and_ddpg(tmp_path):
+    """Issue 48: `--scale` failed for both off-policy scripts ("--k 5000 must exceed --learning-starts 5000"): the
+    warm-up now scales with the budget (part of the run's identity: it changes what the run computes), in a
+    template or from the script's default, and a scaled sweep runs and finishes."""
+    runs = {run.label: run for run in sweep.expand(sweep.Args(preset=["sac-ddpg"], scale=0.01))}
+    assert runs["cascade_sac"].flags == ["--n", "4", "--k", "5000", "--learning-starts", "50"]
+    assert runs["ddpg"].flags == ["--n", "1", "--k", "60000", "--hidden-size", "64", "--learning-starts", "250"]
+    assert runs["sac"].cadence == ["--checkpoint-every", "2048"]
+    (run,) = sweep.expand(sweep.Args(command=["cascade_ddpg.py --k 100000 --learning-starts 1000"], scale=0.1))
+    assert run.flags == ["--k", "10000", "--learning-starts", "100"]
+    (run,) = sweep.expand(sweep.Args(command=["cascade_sac.py --k 100000"], scale=1))
+    assert run.flags == ["--k", "100000"]  # unscaled: the command as written
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "sweep.py"), "--command",
+                           "cascade_sac.py --n 2 --k 40000 --batch-size 32 --eval-every 0", "--envs", "Pendulum-v1",
+                           "--scale", "0.01", "--sweep-dir", str(tmp_path), "--workers", "1"],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert len(os.listdir(tmp_path / "done")) == 1
 
 
 def test_paper_settings_in_presets():

@@ -1,0 +1,244 @@
+"""SAC and DDPG runs lose nothing when killed: a checkpoint every --checkpoint-every steps holds the nets, targets,
+optimizers, RNG streams, env state and the replay buffer (its rows in the run folder's replay/), and a run killed at
+any step and resumed ends bit-identical to the uninterrupted one (GitHub issue 48)."""
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import cascade_ddpg as cd
+import cascade_sac as cs
+from cascade_plumbing import offpolicy, record
+from cascade_plumbing.replay import ReplayBuffer, ReplayFiles
+from helpers import ROOT, cli_in_process, only_run_dir, read_scalars
+
+SCRIPTS = {"sac": cs, "ddpg": cd}
+# Pendulum (200-step episodes that only truncate), 2 iterations of 300 steps, a checkpoint every 70 steps, evaluations
+# at 100-step multiples: kills fall in the warm-up, between checkpoints, right after one, in the second iteration
+TINY = dict(env_id="Pendulum-v1", n=2, k=300, learning_starts=100, batch_size=32, eval_every=100, eval_episodes=2,
+            checkpoint_every=70, quiet=True)
+CHECKPOINT_STEPS = [70, 140, 210, 280, 300, 370, 440, 510, 580, 600]  # every 70 steps since the last, and iteration ends
+NETS = {"sac": ("actor", "qf", "qf_target"), "ddpg": ("actor", "target_actor", "qf", "qf_target")}
+
+
+class Killed(BaseException):
+    """What the test raises inside a run, as a SIGKILL would stop it: nothing after it runs (not an Exception, so no
+    handler in the run can catch it)."""
+
+
+def kill_at(monkeypatch, step):
+    """Stop the next run right after env step `step` (before its update, evaluation or checkpoint)."""
+    original = offpolicy.OffPolicyRun.step
+
+    def step_then_die(self, actions, buffer, global_step):
+        original(self, actions, buffer, global_step)
+        if global_step == step:
+            raise Killed
+
+    monkeypatch.setattr(offpolicy.OffPolicyRun, "step", step_then_die)
+
+
+def final_state(result, algo):
+    return {name: {k: v.clone() for k, v in result[name].state_dict().items()} for name in NETS[algo]}
+
+
+def assert_identical(a, b):
+    for name, state in a.items():
+        for key, value in state.items():
+            torch.testing.assert_close(b[name][key], value, rtol=0, atol=0, msg=f"{name}.{key}")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The uninterrupted runs, per (algo, keep_buffer)."""
+    cache = {}
+
+    def get(algo, keep_buffer):
+        if (algo, keep_buffer) not in cache:
+            mod = SCRIPTS[algo]
+            folder = tmp_path_factory.mktemp(f"{algo}_{keep_buffer}")
+            result = mod.train(mod.Args(**TINY, keep_buffer=keep_buffer, buffer_size=250, track_dir=str(folder)))
+            cache[algo, keep_buffer] = (final_state(result, algo), read_scalars(result["run_dir"]))
+        return cache[algo, keep_buffer]
+
+    return get
+
+
+def resume(mod, run_dir):
+    checkpoint = mod.load_checkpoint(run_dir)
+    return mod.train(mod.Args(**checkpoint["args"]), checkpoint)
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+@pytest.mark.parametrize("keep_buffer", [False, True], ids=["standard", "keep-buffer"])
+# after the warm-up's checkpoint (70), right after a checkpoint (141: its step 140 written), before the iteration's
+# end (299), in iteration 2's warm-up (351) and its learning steps (563)
+@pytest.mark.parametrize("kill_step", [99, 141, 299, 351, 563])
+def test_a_run_killed_at_any_step_resumes_bit_identical(algo, keep_buffer, kill_step, uninterrupted, tmp_path,
+                                                       monkeypatch):
+    mod = SCRIPTS[algo]
+    # small segments (and a 250-row buffer, with --keep-buffer one that wraps): the rows span several files, and old
+    # ones are deleted as the run goes
+    monkeypatch.setattr(ReplayFiles, "SEGMENT_ROWS", 16)
+    expected, expected_scalars = uninterrupted(algo, keep_buffer)
+    args = mod.Args(**TINY, keep_buffer=keep_buffer, buffer_size=250, track_dir=str(tmp_path))
+    with monkeypatch.context() as patch:
+        kill_at(patch, kill_step)
+        with pytest.raises(Killed):
+            mod.train(args)
+    record.OPEN_WRITERS.clear()  # (the killed run's writer: a real kill leaves it behind too)
+    run_dir = only_run_dir(tmp_path)
+    assert mod.load_checkpoint(run_dir)["global_step"] == max(s for s in CHECKPOINT_STEPS if s < kill_step)
+    resumed = resume(mod, run_dir)
+    assert_identical(expected, final_state(resumed, algo))
+    scalars = read_scalars(run_dir)
+    for tag in ("eval/episodic_return", "losses/qf1_loss", "losses/actor_loss", "members/return/net_2"):
+        assert scalars[tag] == expected_scalars[tag], tag
+    # replay/ keeps only what the latest checkpoint needs: the rows of the buffer at its step
+    saved = mod.load_checkpoint(run_dir)["replay"]
+    segments = sorted(int(f[5:-4]) for f in os.listdir(os.path.join(run_dir, "replay")))
+    assert segments and segments[0] == saved["first"] // 16, (segments, saved)
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+def test_a_kill_between_the_rows_and_the_checkpoint_loses_nothing(algo, uninterrupted, tmp_path, monkeypatch):
+    """Killed after the replay rows of a checkpoint were written but before the checkpoint itself: the files hold
+    rows the previous checkpoint does not record, which the resumed run writes again, the same."""
+    mod = SCRIPTS[algo]
+    expected, _ = uninterrupted(algo, False)
+    original = record.save_checkpoint
+
+    def die_at_210(path, payload):
+        if payload["global_step"] == 210:
+            raise Killed
+        original(path, payload)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(record, "save_checkpoint", die_at_210)
+        with pytest.raises(Killed):
+            mod.train(mod.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
+    record.OPEN_WRITERS.clear()
+    run_dir = only_run_dir(tmp_path)
+    assert mod.load_checkpoint(run_dir)["global_step"] == 140
+    assert_identical(expected, final_state(resume(mod, run_dir), algo))
+
+
+def test_replay_files_round_trip_a_wrapped_buffer(tmp_path):
+    """The rows on disk give back the very buffer: its rows in their ring positions, its position and size, and the
+    same samples; after a clear, only rows added since."""
+    rng = np.random.default_rng(0)
+    buffer = ReplayBuffer(50, 3, 2)
+    files = ReplayFiles(str(tmp_path), buffer)
+    files.SEGMENT_ROWS = 16
+
+    def add(rows):
+        for _ in range(rows):
+            buffer.add(rng.normal(size=(1, 3)), rng.normal(size=(1, 3)), rng.normal(size=(1, 2)), rng.normal(size=1),
+                       rng.integers(0, 2, size=1))
+
+    for rows in (30, 45, 2, 60):  # the buffer wraps; checkpoints at 30, 75, 77, 137 rows
+        add(rows)
+        saved = files.save()
+        files.prune(saved)
+    buffer.clear()
+    add(20)
+    saved = files.save()
+    files.prune(saved)
+    for _case in ("after a clear", "full"):
+        again = ReplayBuffer(50, 3, 2)
+        twin = ReplayFiles(str(tmp_path), again)
+        twin.SEGMENT_ROWS = 16
+        twin.restore(saved)
+        assert (again.pos, again.size, again.added, again.start) == (buffer.pos, buffer.size, buffer.added, buffer.start)
+        np.testing.assert_array_equal(again.data[: again.size], buffer.data[: buffer.size])
+        np.random.seed(3)
+        one = buffer.sample(8, torch.device("cpu"))
+        np.random.seed(3)
+        two = again.sample(8, torch.device("cpu"))
+        for a, b in zip(one, two):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+        add(70)  # then a full, wrapped buffer
+        saved = files.save()
+        files.prune(saved)
+    assert sorted(os.listdir(tmp_path / "replay"))[0] == f"rows_{saved['first'] // 16:06d}.f32"
+
+
+def test_missing_or_changed_replay_rows_are_one_line(tmp_path, capsys):
+    """A mid-iteration checkpoint whose replay rows are gone (copied out of its folder) or changed (another run's)
+    is refused in one line that says what to do."""
+    args = cs.Args(**{**TINY, "n": 1}, track_dir=str(tmp_path / "runs"))
+    cs.train(args)
+    run_dir = only_run_dir(tmp_path / "runs")
+    # a copy of the last mid-iteration checkpoint alone, without replay/
+    checkpoint = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)
+    checkpoint["steps_done"], checkpoint["iteration"] = 280, 1
+    os.makedirs(tmp_path / "copy")
+    torch.save(checkpoint, tmp_path / "copy" / "checkpoint.pt")
+    code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", str(tmp_path / "copy"))
+    assert code == 1 and "replay buffer" in error and "is not in" in error and "\n" not in error, error
+    shutil.copytree(os.path.join(run_dir, "replay"), tmp_path / "copy" / "replay")
+    path = tmp_path / "copy" / "replay" / sorted(os.listdir(tmp_path / "copy" / "replay"))[-1]
+    raw = bytearray(path.read_bytes())
+    raw[5] ^= 1
+    path.write_bytes(bytes(raw))
+    code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", str(tmp_path / "copy"))
+    assert code == 1 and "differ" in error and "\n" not in error, error
+
+
+def test_the_final_evaluation_is_logged_before_the_final_checkpoint(tmp_path, monkeypatch):
+    """The final checkpoint is written after the last evaluation is logged and on disk: a run killed right after it
+    has lost nothing (--resume then has nothing to do)."""
+    seen = []
+    original = record.save_checkpoint
+
+    def save_and_look(path, payload):
+        original(path, payload)
+        seen.append((payload["global_step"], [s for s, _ in read_scalars(os.path.dirname(path))
+                                              .get("eval/episodic_return", [])]))
+
+    monkeypatch.setattr(record, "save_checkpoint", save_and_look)
+    cs.train(cs.Args(**{**TINY, "k": 260, "checkpoint_every": 0}, track_dir=str(tmp_path)))
+    # at the final checkpoint (step 520, not an eval step) the final policy's evaluation is in the event file
+    assert seen[-1] == (520, [0, 100, 200, 300, 400, 500, 520])
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+def test_sigkill_then_resume_on_the_command_line(algo, tmp_path):
+    """As a user meets it: a real SIGKILL of a running run, `--resume` of its folder, the same final nets as a run
+    never killed."""
+    script = f"cascade_{algo}.py"
+    flags = ["--env-id", "Pendulum-v1", "--n", "2", "--k", "600", "--learning-starts", "100", "--batch-size", "32",
+             "--eval-every", "0", "--checkpoint-every", "50", "--quiet"]
+    whole = subprocess.run([sys.executable, os.path.join(ROOT, script), *flags, "--track-dir", str(tmp_path / "a")],
+                           capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert whole.returncode == 0, whole.stderr[-2000:]
+    proc = subprocess.Popen([sys.executable, os.path.join(ROOT, script), *flags, "--track-dir", str(tmp_path / "b")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=ROOT)
+    # kill once the run is past its first few checkpoints and still running
+    deadline = 600
+    while deadline:
+        found = list((tmp_path / "b").glob("*/checkpoint.pt"))
+        if found and torch.load(found[0], weights_only=False)["global_step"] >= 400:
+            break
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended before it was killed: {proc.stderr.read()[-2000:]}")
+        subprocess.run(["sleep", "0.2"])
+        deadline -= 1
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    run_dir = only_run_dir(tmp_path / "b")
+    assert not cs.finished(cs.Args(n=2, k=600), torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False))
+    again = subprocess.run([sys.executable, os.path.join(ROOT, script), "--resume", run_dir],
+                           capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert again.returncode == 0, again.stderr[-2000:]
+    mod = SCRIPTS[algo]
+    a, b = mod.load_checkpoint(only_run_dir(tmp_path / "a")), mod.load_checkpoint(run_dir)
+    for name in NETS[algo]:
+        for key, value in a[name].items():
+            torch.testing.assert_close(b[name][key], value, rtol=0, atol=0, msg=f"{name}.{key}")
