@@ -14,7 +14,10 @@ evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
   13 on Ant-v4 and Walker2d-v4; Fig. 8 of `--preset tiny` on its envs): `<fig>_*.png|pdf`, its curves beside
   the standard Cascade runs of the same envs and seeds, and a section of `summary.md` with each variant's final score and the paper's statement;
   from the fallback-init runs of Fig. 11 also the paper's Fig. 6 and 7 and Table 1 for each initial fallback
-  (`fig6_fig7_fallback_init_product.*`, `_per_net.*`, `_tables.md`).
+  (`fig6_fig7_fallback_init_product.*`, `_per_net.*`, `_tables.md`);
+- for the other scripts, with exported runs of `python sweep.py --preset discrete` or `--preset sac-ddpg`: Fig. 16
+  (discrete Cascade against discrete PPO), Fig. 14 (Cascade-SAC against SAC) and Fig. 15 (Cascade-DDPG against
+  DDPG), drawn and summarized as the ablations are, on the envs with runs.
 
     python plots/reproduce.py                       # results/per_run -> results/figures
 """
@@ -75,6 +78,15 @@ ABLATIONS = (
      ("cascade_tiny_k500k=16 nets of one hidden unit, a new one every 0.5M", "cascade_tiny_k1M=every 1M"),
      "the ensemble's performance increases with each added base net, even when weak nets are added in large "
      "numbers (the paper's abstract; runs: `sweep.py --preset tiny`)", None),
+    # the other three scripts (Appendix H and I; runs: `sweep.py --preset discrete` and `--preset sac-ddpg`)
+    ("fig16_discrete", "Fig. 16", ("cascade_discrete", "ppo_discrete"),
+     ("cascade_discrete=Cascade, discrete actions", "ppo_discrete=discrete PPO"),
+     "over 10M steps on the discretized envs Cascade ends slightly ahead of discrete PPO on Walker2d and Hopper and "
+     "level on HalfCheetah, and takes longer to converge (Appendix I)", ("Hopper-v4", "Walker2d-v4", "HalfCheetah-v4")),
+    ("fig14_sac", "Fig. 14", ("cascade_sac", "sac"), ("cascade_sac=Cascade-SAC", "sac=SAC"),
+     "over 2M steps Cascade with SAC yields very little or no improvement over SAC (Appendix H.1)", ENV_ORDER),
+    ("fig15_ddpg", "Fig. 15", ("cascade_ddpg", "ddpg"), ("cascade_ddpg=Cascade-DDPG", "ddpg=DDPG"),
+     "over 6M steps Cascade with DDPG yields very little to no improvement over DDPG (Appendix H.2)", ENV_ORDER),
 )
 
 
@@ -211,7 +223,7 @@ def ablations_present(folder: str) -> list[tuple]:
         variants = [exp for exp in experiments if exp != "cascade"]
         with_runs = tuple(env for env in (envs or ENV_ORDER) if any((env, exp) in exported for exp in variants))
         if with_runs:
-            drawn = tuple(env for env in envs if any(e == env for e, _ in exported)) if envs else with_runs
+            drawn = tuple(env for env in envs if any((env, exp) in exported for exp in experiments)) if envs else with_runs
             present.append((name, figure, experiments, labels, paper, drawn))
     return present
 

@@ -520,6 +520,15 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
                 product["values"] = [v * 1.5 for v in product["values"]]
                 scores["product0.9"] = product["values"][-3:]
             json.dump(run, open(runs / f"{run['name']}.json", "w"))
+        if seed == "1":  # Fig. 16's pair (`--preset discrete`) on Walker2d-v4 alone, returns scaled by 3
+            run = json.loads(json.dumps(data))
+            new_exp = f"{exp}_discrete"
+            run["hparams"].update(env_id="Walker2d-v4", exp_name=new_exp)
+            run["name"] = run["name"].replace("Hopper-v4", "Walker2d-v4").replace(f"__{exp}__", f"__{new_exp}__")
+            returns = run["scalars"]["eval/episodic_return"]
+            returns["values"] = [v * 3 for v in returns["values"]]
+            scores[new_exp] = np.mean(returns["values"][-3:])
+            json.dump(run, open(runs / f"{run['name']}.json", "w"))
         if (exp, seed) == ("cascade", "1"):  # a Fig. 8 run (`--preset tiny`) on Hopper-v4, an env of no other ablation
             run = json.loads(json.dumps(data))
             run["hparams"]["exp_name"] = "cascade_tiny_k1M"
@@ -541,6 +550,12 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
     assert "severely worsens" in section
     tiny = summary[summary.index("## Fig. 8"):]
     assert "| Hopper-v4 |" in tiny and "| Ant-v4 |" not in tiny and "fig8_tiny.png" in names, tiny
+    discrete = summary[summary.index("## Fig. 16"):]
+    discrete = discrete[: discrete.index("Paper:")]
+    row = next(line for line in discrete.splitlines() if line.startswith("| Walker2d-v4 |"))
+    assert f"{scores['cascade_discrete']:.0f} (seeds 1)" in row and f"{scores['ppo_discrete']:.0f} (seeds 1)" in row
+    assert "| Hopper-v4 |" not in discrete and "fig16_discrete.png" in names, discrete
+    assert "## Fig. 14" not in summary and not any(n.startswith(("fig14", "fig15")) for n in names)
     fig2 = next(line for line in summary.splitlines() if line.startswith("| Ant-v4 |"))  # Fig. 2's table comes first
     assert f"{np.mean(scores['cascade']):.0f} ± " in fig2 and "(n=2)" in fig2, fig2
     curves = open(tmp_path / "out" / "fig2_learning_curves.csv").read()
