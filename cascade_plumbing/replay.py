@@ -117,10 +117,14 @@ class ReplayFiles:
                     os.close(fd)
                 part, row = part[count:], row + count
         self.flushed = end
+        return {"first": first, "end": end, "start": buffer.start, "crc32": self.crc32(first, end)}
+
+    def crc32(self, first: int, end: int) -> int:
+        """CRC-32 of the buffer's log rows [first, end), in log order."""
         crc = 0
-        for part in buffer.log_slices(first, end):
+        for part in self.buffer.log_slices(first, end):
             crc = zlib.crc32(memoryview(np.ascontiguousarray(part)).cast("B"), crc)
-        return {"first": first, "end": end, "start": buffer.start, "crc32": crc}
+        return crc
 
     def prune(self, saved: dict) -> None:
         """After the checkpoint of `saved` is written: delete the segments that hold only rows before its first."""
@@ -150,10 +154,7 @@ class ReplayFiles:
                     self.missing(first, end)
                 part[filled : filled + count] = np.frombuffer(raw, dtype=part.dtype).reshape(count, -1)
                 filled, row = filled + count, row + count
-        crc = 0
-        for part in buffer.log_slices(first, end):
-            crc = zlib.crc32(memoryview(np.ascontiguousarray(part)).cast("B"), crc)
-        if crc != saved["crc32"]:
+        if self.crc32(first, end) != saved["crc32"]:
             fail(f"the replay rows in {self.folder} differ from what the checkpoint recorded (CRC mismatch); they "
                  "were changed or belong to another run: resume the run from its own folder's checkpoint.pt")
         self.flushed = end
