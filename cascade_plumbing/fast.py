@@ -735,9 +735,8 @@ class FastPaths:
                                         "the numpy acting path (torch's Gaussian noise only) does not", step)
                         return definition
                 except Exception as exc:
-                    self.switch_off("acting", f"act() raised on the check's float64 copy of the actor ({describe(exc)});"
-                                    " the check needs act to keep the observation's dtype (torch.as_tensor(obs), not"
-                                    " torch.Tensor(obs))", step)
+                    self.switch_off("acting", f"act() raised {describe(exc)} on the check's float64 copy of the "
+                                    f"actor{dtype_hint(exc)}", step)
                     return definition
                 torch.manual_seed(CHECK_SEED + step)
                 sampler = numpy_gaussian_sampler(self.numpy_policy(twin))
@@ -941,6 +940,18 @@ class FastPaths:
         self.messages.append(message)
         if self.announce is not None:
             self.announce(message, step)
+
+
+def dtype_hint(exc: BaseException) -> str:
+    """The remedy for an `act` that fails on the check's float64 copy because it converts the observation to float32
+    (torch.Tensor(obs)), or '' if `exc` does not read as a dtype mismatch (an AttributeError, a typo: its own type and
+    message say what went wrong)."""
+    text = str(exc).lower()
+    if isinstance(exc, (RuntimeError, TypeError)) and any(
+            word in text for word in ("dtype", "scalar type", "double", "float")):
+        return ("; the check needs act to keep the observation's dtype (torch.as_tensor(obs), not "
+                "torch.Tensor(obs))")
+    return ""
 
 
 def describe(exc: BaseException) -> str:

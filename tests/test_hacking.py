@@ -598,3 +598,20 @@ def test_the_checks_put_changed_contents_back_in_place():
     assert watch.changes() == "it sets the contents of global STATS"
     watch.restore()
     assert STATS["mean"] is shared and torch.equal(shared, torch.zeros(3)) and "count" not in STATS
+
+
+def test_an_act_that_raises_is_named_by_its_own_exception():
+    """An act() that fails for a reason of its own (here an attribute the actor does not have) is reported with that
+    exception's type and message, not as a dtype problem (the remedy for a float32 conversion of the observation)."""
+    actor = cpc.CascadeActor(3, 2, 4, 2, 0.5)
+    actor.add_base_net()
+
+    def act(actor, obs):
+        return cpc.sample_action(*actor(torch.as_tensor(obs))[:2]).numpy() * actor.action_scale
+
+    fast = cpc.make_fast_paths(cpc.Args(), torch.device("cpu"))
+    fast.acting_function(act, actor, np.zeros((2, 3), np.float32), 0, 4)
+    assert not fast.acting
+    (message,) = fast.messages
+    assert "act() raised AttributeError: 'CascadeActor' object has no attribute 'action_scale'" in message, message
+    assert "dtype" not in message, message
