@@ -39,7 +39,7 @@ from torch.distributions import Normal
 import cascade_plumbing.checkpoints as checkpoints
 from cascade_plumbing.envs import normalize_obs, obs_statistics
 from cascade_plumbing.errors import fail
-from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, open_saved_model
+from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, mean_action_defined, open_saved_model
 from cascade_plumbing.fast import FastPaths, mlp_ppo_gradients, numpy_mlp_policy, share_one_buffer
 from cascade_plumbing.ppo import (
     check_box_env,
@@ -619,16 +619,17 @@ def evaluate_saved(args: Args) -> dict:
     checkpoint = open_saved_model(args, load_checkpoint)
     env_id, stats = checkpoint["args"]["env_id"], checkpoint["obs_stats"]
     actor = actor_from_checkpoint(checkpoint)
-    evaluator = Evaluator(env_id, args.eval_episodes, args.seed)
-    returns = evaluator(actor, stats, 0, args.deterministic)
-    evaluator.close()
-    mode = "deterministic" if args.deterministic else "stochastic"
-    print(f"{env_id}, PPO, step {checkpoint['global_step']}: "
-          f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
-    if args.capture_video:
-        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
-        video_return = record_video(actor, stats, env_id, path, args.deterministic, args.seed)
-        print(f"video of one episode (return {video_return:.1f}): {path}")
+    with mean_action_defined(args.deterministic):  # --deterministic: a distribution without a mean, one line
+        evaluator = Evaluator(env_id, args.eval_episodes, args.seed)
+        returns = evaluator(actor, stats, 0, args.deterministic)
+        evaluator.close()
+        mode = "deterministic" if args.deterministic else "stochastic"
+        print(f"{env_id}, PPO, step {checkpoint['global_step']}: "
+              f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
+        if args.capture_video:
+            path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
+            video_return = record_video(actor, stats, env_id, path, args.deterministic, args.seed)
+            print(f"video of one episode (return {video_return:.1f}): {path}")
     return {"returns": returns}
 
 

@@ -615,3 +615,31 @@ def test_an_act_that_raises_is_named_by_its_own_exception():
     (message,) = fast.messages
     assert "act() raised AttributeError: 'CascadeActor' object has no attribute 'action_scale'" in message, message
     assert "dtype" not in message, message
+
+
+SQUASHED_POLICY = {  # a tanh-squashed Gaussian through torch's TransformedDistribution: its .mean is not defined
+    "cascade_ppo_continuous.py": "    return Normal(mean, log_std.exp(), validate_args=False)",
+    "ppo_baseline.py": "    return Normal(mean, log_std.exp(), validate_args=False)",
+}
+
+
+@pytest.mark.parametrize("script", list(SQUASHED_POLICY))
+def test_deterministic_evaluation_of_a_distribution_without_a_mean_ends_in_one_line(script, tmp_path, capsys):
+    """`--evaluate <run> --deterministic` acts with the distribution's mean; a copy whose distribution has no
+    closed-form mean (torch's TransformedDistribution raises NotImplementedError) ended in a traceback. It now stops
+    with one line naming the reason and what to do, and a non-zero exit; without --deterministic it evaluates."""
+    module = edited_copy(script, [(SQUASHED_POLICY[script],
+                                   "    return torch.distributions.TransformedDistribution(Normal(mean, log_std.exp(), "
+                                   "validate_args=False), [torch.distributions.transforms.TanhTransform(cache_size=1)])")],
+                         tmp_path)
+    unedited_module = importlib.import_module(script[:-3])
+    train_copy(unedited_module, script, tmp_path / "runs")
+    run_dir = only_run_dir(tmp_path / "runs")
+    with pytest.raises(SystemExit) as stopped:
+        module.evaluate_saved(module.Args(evaluate=run_dir, deterministic=True, eval_episodes=1, quiet=True))
+    message = str(stopped.value)
+    assert message.startswith("error: --deterministic acts with the mean") and "\n" not in message, message
+    assert "NotImplementedError" in message and "evaluate without --deterministic" in message, message
+    assert "define the mean in section 1" in message, message
+    result = module.evaluate_saved(module.Args(evaluate=run_dir, eval_episodes=1, quiet=True))
+    assert np.isfinite(result["returns"]).all()
