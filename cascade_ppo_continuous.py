@@ -533,7 +533,7 @@ def train(args: Args, checkpoint: dict | None = None,
             # --- rollout: the weights do not change during it; values, log-probs and fallback
             # statistics are computed for the whole batch afterwards ---
             # `act`, or its numpy twin once the two draw the same actions on these observations (the next one and
-            # 8 of the previous rollout's; zeros before the first rollout)
+            # 8 of the previous rollout's; zeros before the first rollout); every action is checked after the rollout
             check_obs = np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]])
             policy = fast.acting_function(act, actor, check_obs, global_step, args.num_steps)
             for step in range(args.num_steps):
@@ -552,6 +552,8 @@ def train(args: Args, checkpoint: dict | None = None,
             b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
             b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
             b_mean, b_log_std, batch_fallback, batch_contribution = actor(b_obs)
+            # every action of the rollout against section 1's forward over its observations (the fast path's only)
+            fast.rollout_done(act, actor, b_obs, b_mean, b_log_std, global_step)
             b_logprobs = action_distribution(b_mean, b_log_std).log_prob(b_actions).sum(1)
             values = critic(b_obs).reshape(args.num_steps, args.num_envs)
             next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)

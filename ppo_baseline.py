@@ -368,7 +368,10 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
         b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
         b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
-        b_logprobs = action_distribution(*actor(b_obs)).log_prob(b_actions).sum(1)
+        b_mean, b_log_std = actor(b_obs)
+        # every action of the rollout against section 1's forward over its observations (the fast path's only)
+        fast.rollout_done(act, actor, b_obs, b_mean, b_log_std, global_step)
+        b_logprobs = action_distribution(b_mean, b_log_std).log_prob(b_actions).sum(1)
         values = critic(b_obs).reshape(args.num_steps, args.num_envs)
         next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)
         advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
