@@ -469,7 +469,7 @@ CHECK_GRADIENT_SCALES = (1.0, 1e3)
 # scripts differ by float32 rounding, ~1e-8 (measured on Hopper-v4 and Ant-v4; more once the std is small);
 # observations above this are checked again in float64 (act() against the numpy path, at FAST_PATH_TOLERANCE), the
 # worst ROLLOUT_SUSPECTS at most; a rounding above it costs only that check.
-ROLLOUT_TOLERANCE = 1e-4
+ROLLOUT_TOLERANCE = 1e-5
 ROLLOUT_SUSPECTS = 64
 # the observations of a rollout that differed most (however little) join the next rollout's acting check, in float64
 NEXT_CHECK_ROWS = 8  # the optimizer check steps with section 1's gradients, then 1000 times them
