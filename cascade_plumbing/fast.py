@@ -463,16 +463,16 @@ def bulk_draws_match(shape: tuple, dtype: np.dtype) -> bool:
 
 CHECK_SEED = 12345  # + the step: the acting check's noise, from a forked RNG (training's stream is untouched)
 CHECK_ROWS = 256  # the acting check's observations are repeated to at least this many rows: ~770 noise draws
-CHECK_GRADIENT_SCALES = (1.0, 1e3)
+CHECK_GRADIENT_SCALES = (1.0, 1e3)  # the optimizer check steps with section 1's gradients, then 1000 times them
 # After each rollout, every observation it acted on: the numpy path's means and log-stds against section 1's forward,
 # both float32, as |difference of the means| / std + |difference of the log-stds| per observation. The unmodified
-# scripts differ by float32 rounding, ~1e-8 (measured on Hopper-v4 and Ant-v4; more once the std is small);
-# observations above this are checked again in float64 (act() against the numpy path, at FAST_PATH_TOLERANCE), the
+# scripts differ by float32 rounding: ~1e-8 (Cascade) and ~3e-7 (PPO) on Hopper-v4 and Ant-v4, more once the
+# std is small; observations above this are checked again in float64 (act() against the numpy path, at FAST_PATH_TOLERANCE), the
 # worst ROLLOUT_SUSPECTS at most; a rounding above it costs only that check.
 ROLLOUT_TOLERANCE = 1e-5
 ROLLOUT_SUSPECTS = 64
 # the observations of a rollout that differed most (however little) join the next rollout's acting check, in float64
-NEXT_CHECK_ROWS = 8  # the optimizer check steps with section 1's gradients, then 1000 times them
+NEXT_CHECK_ROWS = 8
 
 
 def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, torch.optim.Optimizer]:
@@ -817,8 +817,11 @@ class FastPaths:
         _, rollout_step, record = rollout
         start = time.perf_counter()
         try:
-            fast_mean = np.concatenate([m for m, _ in record])
-            fast_log_std = np.concatenate([np.broadcast_to(s, m.shape) for m, s in record])
+            means, log_stds = zip(*record)
+            fast_mean = np.concatenate(means)  # [calls * envs, A]
+            fast_log_std = np.concatenate(log_stds)  # the same, or [calls, A] for one log-std vector per call
+            if fast_log_std.shape != fast_mean.shape:
+                fast_log_std = np.repeat(fast_log_std, len(fast_mean) // len(fast_log_std), axis=0)
             rows = len(fast_mean)  # (fewer than the rollout's if the numpy path raised mid-way: act() drew the rest)
             reference_mean = mean.detach()[:rows].cpu().numpy()
             reference_log_std = np.broadcast_to(log_std.detach()[:rows].cpu().numpy(), reference_mean.shape)
@@ -826,7 +829,9 @@ class FastPaths:
                 difference = (np.abs(fast_mean - reference_mean) * np.exp(-reference_log_std)
                               + np.abs(fast_log_std - reference_log_std)).max(1)
             difference = np.where(np.isnan(difference), np.inf, difference)  # (a NaN is a difference too)
-            worst = np.argsort(difference)[::-1][:max(ROLLOUT_SUSPECTS, NEXT_CHECK_ROWS)]
+            keep = min(max(ROLLOUT_SUSPECTS, NEXT_CHECK_ROWS), rows)
+            worst = np.argpartition(difference, rows - keep)[rows - keep:]
+            worst = worst[np.argsort(difference[worst])[::-1]]  # the largest first
             observations = obs.detach()[:rows].cpu().numpy()
             self._suspects = observations[worst[:NEXT_CHECK_ROWS]].astype(np.float32)
             largest = float(difference[worst[0]])

@@ -51,7 +51,7 @@ def test_unmodified_script_keeps_its_fast_paths(module, budget, tmp_path):
     assert 0 < fast.worst["gradients"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
     assert fast.worst["acting"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
     # every action of every rollout against section 1's forward (float32 both): rounding, far below the threshold
-    assert 0 < fast.worst["rollout"] < fast_paths.ROLLOUT_TOLERANCE * 1e-2, fast.worst
+    assert 0 < fast.worst["rollout"] < fast_paths.ROLLOUT_TOLERANCE * 0.1, fast.worst
     # the loss's parts (relative to at least PARTS_SCALE) and the optimizer step, checked with the gradients
     assert 0 < fast.worst["parts"] < fast_paths.FAST_PATH_TOLERANCE * 1e-2, fast.worst
     assert fast.worst["optimizer"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
