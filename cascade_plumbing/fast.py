@@ -466,9 +466,9 @@ CHECK_ROWS = 256  # the acting check's observations are repeated to at least thi
 CHECK_GRADIENT_SCALES = (1.0, 1e3)  # the optimizer check steps with section 1's gradients, then 1000 times them
 # After each rollout, every observation it acted on: the numpy path's means and log-stds against section 1's forward,
 # both float32, as |difference of the means| / std + |difference of the log-stds| per observation. The unmodified
-# scripts differ by float32 rounding: ~1e-8 (Cascade) and ~3e-7 (PPO) on Hopper-v4 and Ant-v4, more once the
-# std is small; observations above this are checked again in float64 (act() against the numpy path, at FAST_PATH_TOLERANCE), the
-# worst ROLLOUT_SUSPECTS at most; a rounding above it costs only that check.
+# scripts differ by float32 rounding: ~1e-8 (Cascade) and ~3e-7 (PPO) on Hopper-v4 and Ant-v4, more once the std is
+# small; observations above this are checked again in float64 (act() against the numpy path, at FAST_PATH_TOLERANCE),
+# the worst ROLLOUT_SUSPECTS at most, so a rounding above it costs only that check.
 ROLLOUT_TOLERANCE = 1e-5
 ROLLOUT_SUSPECTS = 64
 # the observations of a rollout that differed most (however little) join the next rollout's acting check, in float64
