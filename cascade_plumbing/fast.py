@@ -9,7 +9,10 @@ Nothing here is a definition. `FastPaths` checks each path against the script's 
 run trains, in float64 so that rounding (~1e-15) and a real difference (an edit: >= 1e-7) are far apart:
 - acting, at every rollout start: the script's `act(actor, obs)` (its forward and its `sample_action`)
   against the numpy forward plus the numpy Gaussian sampler, both drawing from the same torch RNG state
-  (a new seed every rollout, 256 rows at least, so that an edit of the noise's tails shows);
+  (a new seed every rollout, 256 rows at least, so that an edit of the noise's tails shows); and after each
+  rollout, every one of its actions: the means and log-stds the numpy path drew them around against section 1's
+  forward over all of the rollout's observations (which the loop computes for the update anyway), the observations
+  beyond float32 rounding checked again in float64 (`rollout_done`);
 - the update, on every minibatch of the first update with each new optimizer (each Cascade iteration's first),
   then on the last minibatch of every update (after all the others: the ratios and values have moved, so that
   the clipping matters): the script's
