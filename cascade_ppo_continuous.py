@@ -43,7 +43,7 @@ from torch.distributions import Normal
 import cascade_plumbing.checkpoints as checkpoints
 from cascade_plumbing.envs import normalize_obs, obs_statistics
 from cascade_plumbing.errors import fail
-from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, open_saved_model
+from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, mean_action_defined, open_saved_model
 from cascade_plumbing.fast import FastPaths, cascade_ppo_gradients, numpy_cascade_policy, share_one_buffer
 from cascade_plumbing.ppo import (
     check_box_env,
@@ -533,7 +533,7 @@ def train(args: Args, checkpoint: dict | None = None,
             # --- rollout: the weights do not change during it; values, log-probs and fallback
             # statistics are computed for the whole batch afterwards ---
             # `act`, or its numpy twin once the two draw the same actions on these observations (the next one and
-            # 8 of the previous rollout's; zeros before the first rollout)
+            # 8 of the previous rollout's; zeros before the first rollout); every action is checked after the rollout
             check_obs = np.concatenate([next_obs, obs[:: max(args.num_steps // 8, 1), 0]])
             policy = fast.acting_function(act, actor, check_obs, global_step, args.num_steps)
             for step in range(args.num_steps):
@@ -552,6 +552,8 @@ def train(args: Args, checkpoint: dict | None = None,
             b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
             b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
             b_mean, b_log_std, batch_fallback, batch_contribution = actor(b_obs)
+            # every action of the rollout against section 1's forward over its observations (the fast path's only)
+            fast.rollout_done(act, actor, b_obs, b_mean, b_log_std, global_step)
             b_logprobs = action_distribution(b_mean, b_log_std).log_prob(b_actions).sum(1)
             values = critic(b_obs).reshape(args.num_steps, args.num_envs)
             next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)
@@ -882,22 +884,23 @@ def evaluate_saved(args: Args) -> dict:
     saved = Args(**checkpoint["args"])
     actor = actor_from_checkpoint(checkpoint)
     stats = checkpoint["obs_stats"]
-    evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed)
-    returns, _ = evaluator(full_policy(actor), stats, 0, args.deterministic)
-    mode = "deterministic" if args.deterministic else "stochastic"
-    print(f"{saved.env_id}, {actor.size} base net(s), step {checkpoint['global_step']}: "
-          f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
-    result = {"returns": returns, "members": []}
-    if args.members:
-        for net in range(actor.size):
-            member_returns, _ = evaluator(member_policy(actor, net), stats, 0, args.deterministic)
-            result["members"].append(member_returns)
-            print(f"  net {net + 1} alone: {member_returns.mean():.1f} ± {member_returns.std():.1f}")
-    evaluator.close()
-    if args.capture_video:
-        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
-        video_return = record_video(actor, stats, saved.env_id, path, args.deterministic, args.seed)
-        print(f"video of one episode (return {video_return:.1f}): {path}")
+    with mean_action_defined(args.deterministic):  # --deterministic: a distribution without a mean, one line
+        evaluator = Evaluator(saved.env_id, args.eval_episodes, args.seed)
+        returns, _ = evaluator(full_policy(actor), stats, 0, args.deterministic)
+        mode = "deterministic" if args.deterministic else "stochastic"
+        print(f"{saved.env_id}, {actor.size} base net(s), step {checkpoint['global_step']}: "
+              f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
+        result = {"returns": returns, "members": []}
+        if args.members:
+            for net in range(actor.size):
+                member_returns, _ = evaluator(member_policy(actor, net), stats, 0, args.deterministic)
+                result["members"].append(member_returns)
+                print(f"  net {net + 1} alone: {member_returns.mean():.1f} ± {member_returns.std():.1f}")
+        evaluator.close()
+        if args.capture_video:
+            path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
+            video_return = record_video(actor, stats, saved.env_id, path, args.deterministic, args.seed)
+            print(f"video of one episode (return {video_return:.1f}): {path}")
     return result
 
 

@@ -39,7 +39,7 @@ from torch.distributions import Normal
 import cascade_plumbing.checkpoints as checkpoints
 from cascade_plumbing.envs import normalize_obs, obs_statistics
 from cascade_plumbing.errors import fail
-from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, open_saved_model
+from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, mean_action_defined, open_saved_model
 from cascade_plumbing.fast import FastPaths, mlp_ppo_gradients, numpy_mlp_policy, share_one_buffer
 from cascade_plumbing.ppo import (
     check_box_env,
@@ -368,7 +368,10 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
 
         b_obs = torch.as_tensor(obs, device=device).reshape(-1, obs_dim)
         b_actions = torch.as_tensor(actions, device=device).reshape(-1, act_dim)
-        b_logprobs = action_distribution(*actor(b_obs)).log_prob(b_actions).sum(1)
+        b_mean, b_log_std = actor(b_obs)
+        # every action of the rollout against section 1's forward over its observations (the fast path's only)
+        fast.rollout_done(act, actor, b_obs, b_mean, b_log_std, global_step)
+        b_logprobs = action_distribution(b_mean, b_log_std).log_prob(b_actions).sum(1)
         values = critic(b_obs).reshape(args.num_steps, args.num_envs)
         next_value = critic(torch.as_tensor(next_obs, device=device)).reshape(args.num_envs)
         advantages = compute_gae(rewards, dones, values.cpu().numpy(), next_value.cpu().numpy(), next_done,
@@ -619,16 +622,17 @@ def evaluate_saved(args: Args) -> dict:
     checkpoint = open_saved_model(args, load_checkpoint)
     env_id, stats = checkpoint["args"]["env_id"], checkpoint["obs_stats"]
     actor = actor_from_checkpoint(checkpoint)
-    evaluator = Evaluator(env_id, args.eval_episodes, args.seed)
-    returns = evaluator(actor, stats, 0, args.deterministic)
-    evaluator.close()
-    mode = "deterministic" if args.deterministic else "stochastic"
-    print(f"{env_id}, PPO, step {checkpoint['global_step']}: "
-          f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
-    if args.capture_video:
-        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
-        video_return = record_video(actor, stats, env_id, path, args.deterministic, args.seed)
-        print(f"video of one episode (return {video_return:.1f}): {path}")
+    with mean_action_defined(args.deterministic):  # --deterministic: a distribution without a mean, one line
+        evaluator = Evaluator(env_id, args.eval_episodes, args.seed)
+        returns = evaluator(actor, stats, 0, args.deterministic)
+        evaluator.close()
+        mode = "deterministic" if args.deterministic else "stochastic"
+        print(f"{env_id}, PPO, step {checkpoint['global_step']}: "
+              f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
+        if args.capture_video:
+            path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
+            video_return = record_video(actor, stats, env_id, path, args.deterministic, args.seed)
+            print(f"video of one episode (return {video_return:.1f}): {path}")
     return {"returns": returns}
 
 

@@ -4,9 +4,11 @@ What is evaluated, and how it acts, is the script's (its `Evaluator`); this is o
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import signal
-from collections.abc import Callable
+import traceback
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import gymnasium as gym
@@ -145,3 +147,20 @@ def open_saved_model(args: Any, load_checkpoint: Callable[[str], dict]) -> dict:
         make_render_env(checkpoint["args"]["env_id"]).close()
     set_threads(args.torch_threads)
     return checkpoint
+
+
+@contextlib.contextmanager
+def mean_action_defined(deterministic: bool) -> Iterator[None]:
+    """--evaluate --deterministic acts with the mean of the policy's distribution (`action_distribution(...).mean`):
+    a distribution with no closed-form mean (torch's TransformedDistribution, e.g. a tanh-squashed Gaussian) raises
+    NotImplementedError there, which ends in one line saying so and what to do, not in a traceback."""
+    try:
+        yield
+    except NotImplementedError as exc:
+        frames = traceback.extract_tb(exc.__traceback__)
+        if not deterministic or not frames or frames[-1].name != "mean":
+            raise
+        fail(f"--deterministic acts with the mean of the policy's distribution, and this one has none in closed form "
+             f"(NotImplementedError{': ' + str(exc) if str(exc) else ''} from its .mean, in {frames[-1].filename}); "
+             "evaluate without --deterministic (sampled actions), or define the mean in section 1 (e.g. a subclass of "
+             "the distribution with a `mean` property, such as tanh of the Gaussian's mean)")

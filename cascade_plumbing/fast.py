@@ -9,7 +9,10 @@ Nothing here is a definition. `FastPaths` checks each path against the script's 
 run trains, in float64 so that rounding (~1e-15) and a real difference (an edit: >= 1e-7) are far apart:
 - acting, at every rollout start: the script's `act(actor, obs)` (its forward and its `sample_action`)
   against the numpy forward plus the numpy Gaussian sampler, both drawing from the same torch RNG state
-  (a new seed every rollout, 256 rows at least, so that an edit of the noise's tails shows);
+  (a new seed every rollout, 256 rows at least, so that an edit of the noise's tails shows); and after each
+  rollout, every one of its actions: the means and log-stds the numpy path drew them around against section 1's
+  forward over all of the rollout's observations (which the loop computes for the update anyway), the observations
+  beyond float32 rounding checked again in float64 (`rollout_done`);
 - the update, on every minibatch of the first update with each new optimizer (each Cascade iteration's first),
   then on the last minibatch of every update (after all the others: the ratios and values have moved, so that
   the clipping matters): the script's
@@ -384,8 +387,8 @@ def mlp_ppo_gradients(actor: nn.Module, critic: nn.Module, minibatch: tuple, arg
     return losses.pop("loss"), losses
 
 
-def numpy_gaussian_sampler(policy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], calls: int = 0
-                           ) -> Callable[[np.ndarray], np.ndarray]:
+def numpy_gaussian_sampler(policy: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], calls: int = 0,
+                           record: list | None = None) -> Callable[[np.ndarray], np.ndarray]:
     """obs -> a sample of Normal(mean, exp(log_std)) as torch's `Normal.sample()` draws it: one standard normal
     per action entry from torch's RNG (the same draws, in the same order: `normal_` on a tensor of the actions'
     shape), then mean + std * noise.
@@ -394,12 +397,17 @@ def numpy_gaussian_sampler(policy: Callable[[np.ndarray], tuple[np.ndarray, np.n
     SERIAL_NORMAL numbers, the noise of all of them is drawn at the first call with one `normal_` (a torch call
     per env step costs ~10-20 us in a rollout loop, a cold path between two MuJoCo steps): torch fills such
     tensors one number after the other, so the draws and the RNG state afterwards are those of one call per
-    step; `bulk_draws_match` confirms it on the running torch, else every call draws its own."""
+    step; `bulk_draws_match` confirms it on the running torch, else every call draws its own.
+
+    `record`, when given, receives the (mean, log-std) of every call: what the rollout's actions were drawn around,
+    compared after the rollout with section 1's forward over the same observations (`FastPaths.rollout_done`)."""
     noise_np, index, state_after_draw = np.empty((0, 0)), 0, b""
 
     def sample(obs: np.ndarray) -> np.ndarray:
         nonlocal noise_np, index, state_after_draw
         mean, log_std = policy(obs)
+        if record is not None:
+            record.append((mean, log_std))
         if index == len(noise_np) or noise_np.shape[1:] != mean.shape or noise_np.dtype != mean.dtype:
             rows = calls if index == 0 and calls > 1 and bulk_draws_match(mean.shape, mean.dtype) else 1
             noise_np, index = standard_normals(rows, mean.shape, mean.dtype), 0
@@ -459,6 +467,15 @@ def bulk_draws_match(shape: tuple, dtype: np.dtype) -> bool:
 CHECK_SEED = 12345  # + the step: the acting check's noise, from a forked RNG (training's stream is untouched)
 CHECK_ROWS = 256  # the acting check's observations are repeated to at least this many rows: ~770 noise draws
 CHECK_GRADIENT_SCALES = (1.0, 1e3)  # the optimizer check steps with section 1's gradients, then 1000 times them
+# After each rollout, every observation it acted on: the numpy path's means and log-stds against section 1's forward,
+# both float32, as |difference of the means| / std + |difference of the log-stds| per observation. The unmodified
+# scripts differ by float32 rounding: ~1e-8 (Cascade) and ~3e-7 (PPO) on Hopper-v4 and Ant-v4, more once the std is
+# small; observations above this are checked again in float64 (act() against the numpy path, at FAST_PATH_TOLERANCE),
+# the worst ROLLOUT_SUSPECTS at most, so a rounding above it costs only that check.
+ROLLOUT_TOLERANCE = 1e-5
+ROLLOUT_SUSPECTS = 64
+# the observations of a rollout that differed most (however little) join the next rollout's acting check, in float64
+NEXT_CHECK_ROWS = 8
 
 
 def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, torch.optim.Optimizer]:
@@ -676,12 +693,15 @@ class FastPaths:
         self.numpy_policy, self.fast_gradients, self.announce = numpy_policy, fast_gradients, announce
         self.definition = definition
         # the largest disagreement seen by the checks that passed
-        self.worst = {"acting": 0.0, "gradients": 0.0, "parts": 0.0, "optimizer": 0.0}
+        self.worst = {"acting": 0.0, "rollout": 0.0, "gradients": 0.0, "parts": 0.0, "optimizer": 0.0}
         self.check_seconds = 0.0
         self.messages: list[str] = []
         self._twins: dict[str, tuple] = {}  # "actor"/"critic" -> (the module, the step it was copied at, copy)
         self._minibatch = (None, 0, False)  # (the update's global_step, its minibatch, check all?): when to check
         self._fully_checked: torch.optim.Optimizer | None = None  # the optimizer whose first update was checked
+        # the rollout the numpy path acts in: (the actor, its step, the (mean, log-std) of each of its calls)
+        self._rollout: tuple[nn.Module, int, list] | None = None
+        self._suspects: np.ndarray | None = None  # the last rollout's observations that differed most
 
     def float64_twin(self, role: str, module: nn.Module, step: int) -> nn.Module:
         """A float64 copy of `module` (actor or critic), its .grad zeroed. Deep-copied anew (every attribute: an edit
@@ -703,15 +723,25 @@ class FastPaths:
         return twin
 
     def acting_function(self, act: Callable[[nn.Module, np.ndarray], np.ndarray], actor: nn.Module,
-                        check_obs: np.ndarray, step: int, calls: int = 0) -> Callable[[np.ndarray], np.ndarray]:
+                        check_obs: np.ndarray, step: int, calls: int = 0, context: str = ""
+                        ) -> Callable[[np.ndarray], np.ndarray]:
         """The rollout's obs -> actions: the numpy path if it draws what the script's `act(actor, obs)` draws
-        from the same RNG state on `check_obs` (repeated to CHECK_ROWS rows), else `act` itself. `calls`: the
-        rollout's steps, if known."""
+        from the same RNG state on `check_obs` and on the previous rollout's observations that differed most
+        (repeated to CHECK_ROWS rows), else `act` itself. `calls`: the rollout's steps, if known. The actions of the
+        rollout are checked once more after it, every one of them (`rollout_done`). `context` begins the warning."""
         definition = functools.partial(act, actor)
+        self._rollout = None
         if not self.acting:
             return definition
+
+        def switch_off(what: str) -> None:
+            self.switch_off("acting", context + what, step)
+
         start = time.perf_counter()
         try:
+            suspects, self._suspects = self._suspects, None
+            if suspects is not None and suspects.shape[1:] == np.shape(check_obs)[1:]:
+                check_obs = np.concatenate([check_obs, suspects])
             twin = self.float64_twin("actor", actor, step)
             obs = np.asarray(check_obs, dtype=np.float64)
             obs = np.tile(obs, (-(-CHECK_ROWS // max(len(obs), 1)), 1))
@@ -727,17 +757,16 @@ class FastPaths:
                                      for _ in range(2)]
                         kept = watch.changes()
                     if kept:
-                        self.switch_off("acting", f"act() keeps state between calls ({kept}), while the numpy acting "
-                                        "path draws every action afresh", step)
+                        switch_off(f"act() keeps state between calls ({kept}), while the numpy acting "
+                                   "path draws every action afresh")
                         return definition
                     if numpy_and_python_streams() != streams:
-                        self.switch_off("acting", "act() draws from numpy's or Python's global random numbers, which "
-                                        "the numpy acting path (torch's Gaussian noise only) does not", step)
+                        switch_off("act() draws from numpy's or Python's global random numbers, which "
+                                   "the numpy acting path (torch's Gaussian noise only) does not")
                         return definition
                 except Exception as exc:
-                    self.switch_off("acting", f"act() raised on the check's float64 copy of the actor ({describe(exc)});"
-                                    " the check needs act to keep the observation's dtype (torch.as_tensor(obs), not"
-                                    " torch.Tensor(obs))", step)
+                    switch_off(f"act() raised {describe(exc)} on the check's float64 copy of the "
+                               f"actor{dtype_hint(exc)}")
                     return definition
                 torch.manual_seed(CHECK_SEED + step)
                 sampler = numpy_gaussian_sampler(self.numpy_policy(twin))
@@ -746,21 +775,23 @@ class FastPaths:
                 raise ValueError(f"actions of shape {tuple(fast[0].shape)} instead of {tuple(reference[0].shape)}")
             error = relative_error(fast, reference)
             if not error <= FAST_PATH_TOLERANCE and relative_error(fast[:1], reference[:1]) <= FAST_PATH_TOLERANCE:
-                self.switch_off("acting", "act() keeps state between calls (its second call on the same observations "
-                                f"draws otherwise than the numpy acting path, max relative error {error:.1e}), while "
-                                "the numpy acting path draws every action afresh", step)
+                switch_off("act() keeps state between calls (its second call on the same observations "
+                           f"draws otherwise than the numpy acting path, max relative error {error:.1e}), while "
+                           "the numpy acting path draws every action afresh")
                 return definition
         except Exception as exc:  # an edit the fast path cannot follow (another shape, another net): a failed check
-            self.switch_off("acting", f"the numpy acting path fails on this actor ({describe(exc)})", step)
+            switch_off(f"the numpy acting path fails on this actor ({describe(exc)})")
             return definition
         finally:
             self.check_seconds += time.perf_counter() - start
         if not error <= FAST_PATH_TOLERANCE:
-            self.switch_off("acting", f"the numpy acting path (forward and Gaussian sampling) draws other actions "
-                            f"than act() (max relative error {error:.1e})", step)
+            switch_off(f"the numpy acting path (forward and Gaussian sampling) draws other actions "
+                       f"than act() (max relative error {error:.1e})")
             return definition
         self.worst["acting"] = max(self.worst["acting"], error)
-        fast_act = numpy_gaussian_sampler(self.numpy_policy(actor), calls)
+        record: list = []
+        fast_act = numpy_gaussian_sampler(self.numpy_policy(actor), calls, record)
+        self._rollout = (actor, step, record)
 
         def guarded(obs: np.ndarray) -> np.ndarray:
             nonlocal fast_act
@@ -768,11 +799,64 @@ class FastPaths:
                 try:
                     return fast_act(obs)
                 except Exception as exc:
-                    self.switch_off("acting", f"the numpy acting path raised {describe(exc)}", step)
+                    switch_off(f"the numpy acting path raised {describe(exc)}")
                     fast_act = None
             return definition(obs)
 
         return guarded
+
+    def rollout_done(self, act: Callable[[nn.Module, np.ndarray], np.ndarray], actor: nn.Module, obs: torch.Tensor,
+                     mean: torch.Tensor, log_std: torch.Tensor, step: int) -> None:
+        """After a rollout the numpy path acted in: every one of its actions against section 1. `mean`, `log_std`
+        are section 1's forward over the rollout's observations `obs` [steps * envs, obs_dim] (the loop computes them
+        anyway, for the log-probs of the update); the numpy path's means and log-stds are compared with them row by
+        row (float32, a vectorized difference), and the observations where they differ by more than float32 rounding
+        are checked again in float64, act() against the numpy path, as at a rollout's start. A difference there (an
+        edit that acts on some observations only: a clip, a branch on the observation's size) switches acting off
+        at this rollout. The observations that differed most join the next rollout's acting check."""
+        rollout, self._rollout = self._rollout, None
+        if rollout is None or not self.acting or rollout[0] is not actor or not rollout[2]:
+            return
+        _, rollout_step, record = rollout
+        start = time.perf_counter()
+        try:
+            means, log_stds = zip(*record)
+            fast_mean = np.concatenate(means)  # [calls * envs, A]
+            fast_log_std = np.concatenate(log_stds)  # the same, or [calls, A] for one log-std vector per call
+            if fast_log_std.shape != fast_mean.shape:
+                fast_log_std = np.repeat(fast_log_std, len(fast_mean) // len(fast_log_std), axis=0)
+            rows = len(fast_mean)  # (fewer than the rollout's if the numpy path raised mid-way: act() drew the rest)
+            reference_mean = mean.detach()[:rows].cpu().numpy()
+            reference_log_std = np.broadcast_to(log_std.detach()[:rows].cpu().numpy(), reference_mean.shape)
+            with np.errstate(all="ignore"):
+                difference = (np.abs(fast_mean - reference_mean) * np.exp(-reference_log_std)
+                              + np.abs(fast_log_std - reference_log_std)).max(1)
+            difference = np.where(np.isnan(difference), np.inf, difference)  # (a NaN is a difference too)
+            keep = min(max(ROLLOUT_SUSPECTS, NEXT_CHECK_ROWS), rows)
+            worst = np.argpartition(difference, rows - keep)[rows - keep:]
+            worst = worst[np.argsort(difference[worst])[::-1]]  # the largest first
+            observations = obs.detach()[:rows].cpu().numpy()
+            self._suspects = observations[worst[:NEXT_CHECK_ROWS]].astype(np.float32)
+            largest = float(difference[worst[0]])
+            flagged = worst[difference[worst] > ROLLOUT_TOLERANCE]
+        except Exception as exc:
+            self.switch_off("acting", f"section 1's forward over the rollout's observations cannot be compared with "
+                            f"the numpy acting path's ({describe(exc)})", step)
+            return
+        finally:
+            self.check_seconds += time.perf_counter() - start
+        if len(flagged):
+            count = int((difference > ROLLOUT_TOLERANCE).sum())
+            context = (f"the rollout from global_step={rollout_step} acted through the numpy path, whose means or "
+                       f"log-stds differ from section 1's forward on {count} of its {rows} observations (up to "
+                       f"{largest:.1e} in units of the policy's std; so those actions are not act()'s); on the worst "
+                       f"{len(flagged)} of them ")
+            suspects = self._suspects
+            self.acting_function(act, actor, observations[flagged], step, context=context)
+            self._rollout, self._suspects = None, suspects  # (the suspects are the next rollout's still)
+            if not self.acting:
+                return
+        self.worst["rollout"] = max(self.worst["rollout"], largest)
 
     def check_update(self, actor: nn.Module, critic: nn.Module, optimizer: torch.optim.Optimizer, minibatch: tuple,
                      args: Any, step: int) -> None:
@@ -941,6 +1025,18 @@ class FastPaths:
         self.messages.append(message)
         if self.announce is not None:
             self.announce(message, step)
+
+
+def dtype_hint(exc: BaseException) -> str:
+    """The remedy for an `act` that fails on the check's float64 copy because it converts the observation to float32
+    (torch.Tensor(obs)), or '' if `exc` does not read as a dtype mismatch (an AttributeError, a typo: its own type and
+    message say what went wrong)."""
+    text = str(exc).lower()
+    if isinstance(exc, (RuntimeError, TypeError)) and any(
+            word in text for word in ("dtype", "scalar type", "double", "float")):
+        return ("; the check needs act to keep the observation's dtype (torch.as_tensor(obs), not "
+                "torch.Tensor(obs))")
+    return ""
 
 
 def describe(exc: BaseException) -> str:

@@ -17,7 +17,7 @@ Nothing here is a definition. `OffPolicyFastPath.update(definition, *arguments)`
 the temperature), from the same random state, on the first updates with each new actor optimizer (each Cascade
 iteration's first, a resumed run's first) and then every CHECK_EVERY updates, and compares what they leave: the
 optimizers' moments (the gradients), every parameter's change, the values the script logs. `act(explore, ...)`
-compares the two actings likewise (CHECK_ROWS draws for the current observation) at each new net and every
+compares the two actings likewise (CHECK_ROWS draws for the current observation, one for each observation acted on since the previous check) at each new net and every
 CHECK_EVERY steps. A disagreement, or an exception, switches that path off for the rest of the run with one warning
 line, and the run continues with the script's own function, as `--autograd` runs it. A script's edit of its nets,
 losses, update or acting therefore either changes both paths alike or shows at the next check, which comes
@@ -642,6 +642,7 @@ class OffPolicyFastPath:
         self.complete_checked = False  # has a complete update been checked since the latest new optimizers?
         self.acting_key: tuple = ()  # (actor, its size) at the latest acting check
         self.acts = 0  # acting steps since then
+        self.acted: list[np.ndarray] = []  # the observations the numpy path acted on since then (the next check's too)
         self.next_acting_check = 0
         # the checks' spacing is drawn from their own generator (the run's streams are untouched): a fixed spacing would
         # check only one phase of an edit that acts every so many steps
@@ -663,27 +664,33 @@ class OffPolicyFastPath:
             key = self.acting_key
             if not key or key[0] is not actor or key[1] != actor.size or self.acts >= self.next_acting_check:
                 self.acting_key, self.acts, self.next_acting_check = (actor, actor.size), 0, self.gap()
+                acted, self.acted = self.acted, []
                 try:
-                    what = self.check_acting(definition, actor, obs, extra)
+                    what = self.check_acting(definition, actor, obs, extra, acted)
                 except Exception as exc:
                     what = f"the numpy acting path fails on this actor ({describe(exc)})"
                 if what is not None:
                     self.switch_off(what, step, acting=True)
             if self.acting:
                 self.acts += 1
+                self.acted.append(np.array(obs))  # (a copy: the loop may reuse its array)
                 return self.fast_explore(actor, obs, *extra)
         with torch.inference_mode():  # acting: no autograd bookkeeping at all
             observations = torch.as_tensor(obs, dtype=torch.float32, device=actor.action_scale.device)
             return definition(actor, observations, *extra).cpu().numpy()
 
     def check_acting(self, definition: Callable[..., torch.Tensor], actor: nn.Module, obs: np.ndarray,
-                     extra: tuple) -> str | None:
-        """`definition` and the numpy path on a float64 copy of the actor, CHECK_ROWS draws for obs, from the same
-        random state; what differs."""
+                     extra: tuple, acted: list[np.ndarray] = ()) -> str | None:
+        """`definition` and the numpy path on a float64 copy of the actor, CHECK_ROWS draws for obs and one for each
+        observation `acted` on since the previous check (so that an edit acting on some observations only, a clip,
+        is met at the next check once the run has acted on one), from the same random state; what differs."""
         start = time.perf_counter()
         try:
             twin = copy.deepcopy(actor).double()
             rows = np.repeat(obs, CHECK_ROWS, axis=0).astype(np.float64)
+            acted = [a for a in acted if a.shape[1:] == obs.shape[1:]]
+            if acted:
+                rows = np.concatenate([rows, *acted]).astype(np.float64)
             with float64_by_default():
                 # twice: an explore that keeps state between calls (Ornstein-Uhlenbeck noise, sticky actions) shows
                 # in its second call, if not already in the names it binds (which the check then undoes)

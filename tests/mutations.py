@@ -407,8 +407,8 @@ MUTATIONS += [
              ("tests/test_hacking.py::test_a_resumed_actor_keeps_its_saved_frozen_count_through_an_edited_freeze_below",)),
     # a researcher's probe (2026-12-05): state kept by act() between calls, and each parameter group's own LR
     Mutation("fast: act's rebound names go unnamed", FAST,
-             "kept = watch.changes()\n                    if kept:\n                        self.switch_off(\"acting\"",
-             "kept = ''\n                    if kept:\n                        self.switch_off(\"acting\"",
+             "kept = watch.changes()\n                    if kept:\n                        switch_off(f\"act() keeps",
+             "kept = ''\n                    if kept:\n                        switch_off(f\"act() keeps",
              ("tests/test_hacking.py::test_an_act_that_keeps_state_between_calls_switches_acting_off",)),
     Mutation("fast: the checks' calls leave their state behind", FAST,
              "    def restore(self) -> None:\n", "    def restore(self) -> None:\n        return\n",

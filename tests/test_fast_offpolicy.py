@@ -615,3 +615,33 @@ def test_an_explore_keeping_state_inside_an_object_is_named_and_left_as_it_was()
     action = path.act(explore_ou_object, actor, np.ones((1, OBS_DIM), np.float32), *extra, step=3)
     assert not path.acting and "(it sets the contents of global ou_process)" in messages[0], messages
     assert action.shape == (1, ACT_DIM) and ou_process.state.shape == (1, ACT_DIM)  # the run's own first call
+
+
+def explore_clipped(explore):
+    """`explore` on observations clipped to ±3: an edit that acts on large observations only."""
+    return lambda actor, obs, *extra: explore(actor, obs.clamp(-3.0, 3.0), *extra)
+
+
+@pytest.mark.parametrize("script", ["sac", "ddpg"])
+def test_the_acting_check_covers_every_observation_acted_on_since_the_last(script):
+    """An issue: an edit that acts on some observations only (a clip) was met only if the check's one observation
+    was one of them. A check now also draws for every observation the numpy path acted on since the previous check
+    (one on a large observation among small ones here), and switches acting off there."""
+    actor, explore, fast, extra = acting_setup(("sac", 2, None, None, None) if script == "sac"
+                                               else ("ddpg", 2, True, "tanh", 0.1))
+    messages = []
+    path = fo.OffPolicyFastPath(True, fast, announce=lambda message, step: messages.append(message))
+    small = np.full((1, OBS_DIM), 0.5, np.float32)
+    large = np.full((1, OBS_DIM), 0.5, np.float32)
+    large[0, 0] = 6.0
+    edited_explore = explore_clipped(explore)
+    path.act(edited_explore, actor, small, *extra, step=0)  # checked on the small observation only: no difference
+    assert path.acting and messages == []
+    path.next_acting_check = 4  # (the first call counted one step)
+    for step, obs in enumerate([small, large, small], start=1):
+        path.act(edited_explore, actor, obs, *extra, step=step)
+    assert path.acting  # no check between two checks
+    path.act(edited_explore, actor, small, *extra, step=4)  # the check: the large observation acted on is among its
+    assert not path.acting and len(messages) == 1, messages
+    assert messages[0].startswith("fast acting check at global_step=4") and "differ" in messages[0], messages[0]
+    assert path.acted == []

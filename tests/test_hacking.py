@@ -50,6 +50,8 @@ def test_unmodified_script_keeps_its_fast_paths(module, budget, tmp_path):
     assert fast.acting and fast.gradients and fast.messages == []
     assert 0 < fast.worst["gradients"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
     assert fast.worst["acting"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
+    # every action of every rollout against section 1's forward (float32 both): rounding, far below the threshold
+    assert 0 < fast.worst["rollout"] < fast_paths.ROLLOUT_TOLERANCE * 0.1, fast.worst
     # the loss's parts (relative to at least PARTS_SCALE) and the optimizer step, checked with the gradients
     assert 0 < fast.worst["parts"] < fast_paths.FAST_PATH_TOLERANCE * 1e-2, fast.worst
     assert fast.worst["optimizer"] < fast_paths.FAST_PATH_TOLERANCE * 1e-3, fast.worst
@@ -598,3 +600,82 @@ def test_the_checks_put_changed_contents_back_in_place():
     assert watch.changes() == "it sets the contents of global STATS"
     watch.restore()
     assert STATS["mean"] is shared and torch.equal(shared, torch.zeros(3)) and "count" not in STATS
+
+
+def test_an_act_that_raises_is_named_by_its_own_exception():
+    """An act() that fails for a reason of its own (here an attribute the actor does not have) is reported with that
+    exception's type and message, not as a dtype problem (the remedy for a float32 conversion of the observation)."""
+    actor = cpc.CascadeActor(3, 2, 4, 2, 0.5)
+    actor.add_base_net()
+
+    def act(actor, obs):
+        return cpc.sample_action(*actor(torch.as_tensor(obs))[:2]).numpy() * actor.action_scale
+
+    fast = cpc.make_fast_paths(cpc.Args(), torch.device("cpu"))
+    fast.acting_function(act, actor, np.zeros((2, 3), np.float32), 0, 4)
+    assert not fast.acting
+    (message,) = fast.messages
+    assert "act() raised AttributeError: 'CascadeActor' object has no attribute 'action_scale'" in message, message
+    assert "dtype" not in message, message
+
+
+SQUASHED_POLICY = {  # a tanh-squashed Gaussian through torch's TransformedDistribution: its .mean is not defined
+    "cascade_ppo_continuous.py": "    return Normal(mean, log_std.exp(), validate_args=False)",
+    "ppo_baseline.py": "    return Normal(mean, log_std.exp(), validate_args=False)",
+}
+
+
+@pytest.mark.parametrize("script", list(SQUASHED_POLICY))
+def test_deterministic_evaluation_of_a_distribution_without_a_mean_ends_in_one_line(script, tmp_path, capsys):
+    """`--evaluate <run> --deterministic` acts with the distribution's mean; a copy whose distribution has no
+    closed-form mean (torch's TransformedDistribution raises NotImplementedError) ended in a traceback. It now stops
+    with one line naming the reason and what to do, and a non-zero exit; without --deterministic it evaluates."""
+    module = edited_copy(script, [(SQUASHED_POLICY[script],
+                                   "    return torch.distributions.TransformedDistribution(Normal(mean, log_std.exp(), "
+                                   "validate_args=False), [torch.distributions.transforms.TanhTransform(cache_size=1)])")],
+                         tmp_path)
+    unedited_module = importlib.import_module(script[:-3])
+    train_copy(unedited_module, script, tmp_path / "runs")
+    run_dir = only_run_dir(tmp_path / "runs")
+    with pytest.raises(SystemExit) as stopped:
+        module.evaluate_saved(module.Args(evaluate=run_dir, deterministic=True, eval_episodes=1, quiet=True))
+    message = str(stopped.value)
+    assert message.startswith("error: --deterministic acts with the mean") and "\n" not in message, message
+    assert "NotImplementedError" in message and "evaluate without --deterministic" in message, message
+    assert "define the mean in section 1" in message, message
+    result = module.evaluate_saved(module.Args(evaluate=run_dir, eval_episodes=1, quiet=True))
+    assert np.isfinite(result["returns"]).all()
+
+
+# Edits that act on some observations only, which the acting check at a rollout's start (the next observation and 8
+# of the previous rollout's) did not see for many rollouts: the numpy path acted on the unedited policy meanwhile.
+PARTIAL_EDITS = {  # edit, threshold on max |obs| of a rollout from which it acts
+    "observation clip": ([("        hidden = obs  # every base net reads the same observation",
+                           "        hidden = obs.clamp(-5.0, 5.0)  # every base net reads the clipped observation")],
+                         5.0),
+    "wider policy on large observations": ([(
+        "        log_std = contribution.T @ log_stds  # the same sum for the per-net log-std vectors",
+        "        log_std = contribution.T @ log_stds + 0.5 * (obs.abs().amax(1, keepdim=True) > 4.5)")], 4.5),
+}
+
+
+@pytest.mark.parametrize("edit", list(PARTIAL_EDITS))
+def test_an_edit_acting_on_some_observations_only_is_caught_at_the_first_rollout_it_acts_in(edit, tmp_path,
+                                                                                            monkeypatch):
+    """An issue: clipping the observations to ±5 in base_nets was not followed by the numpy acting path, and the
+    acting check, which saw ~9 observations per rollout, missed it for eight rollouts. Every action of a rollout is
+    now compared with section 1's forward over the rollout's observations (which the loop computes anyway): the
+    first rollout with an observation the edit acts on switches acting off, saying that rollout acted on the numpy
+    path; no later rollout does."""
+    edits, threshold = PARTIAL_EDITS[edit]
+    module = edited_copy("cascade_ppo_continuous.py", edits, tmp_path)
+    rollouts = []  # (global_step at the rollout's end, max |obs| in it)
+    rollout_done = fast_paths.FastPaths.rollout_done
+    monkeypatch.setattr(fast_paths.FastPaths, "rollout_done", lambda self, act, actor, obs, *rest: (
+        rollouts.append((rest[-1], float(obs.abs().max()))), rollout_done(self, act, actor, obs, *rest))[1])
+    _, messages = train_copy(module, "cascade_ppo_continuous.py", tmp_path / "fast")
+    first = next(step for step, largest in rollouts if largest > threshold)
+    assert len(messages) == 1, messages
+    assert f"fast path check at global_step={first}: the rollout from global_step={first - 256} acted through the " \
+           "numpy path" in messages[0], messages[0]
+    assert "draws other actions than act()" in messages[0] and "continuing by acting through act()" in messages[0]
