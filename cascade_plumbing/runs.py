@@ -23,7 +23,7 @@ from threadpoolctl import ThreadpoolController
 
 from .checkpoints import CHECKPOINT_NAME, repair_iteration_files
 from .envs import end_env_workers
-from .errors import fail
+from .errors import check_ranges, fail
 from .tracking import check_wandb, finish_wandb
 
 
@@ -190,7 +190,9 @@ def script_name(file: str) -> str:
 
 
 def check_common_settings(args: Any) -> None:
-    """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left)."""
+    """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left);
+    first every real-valued setting: finite and in its range (errors.check_ranges)."""
+    check_ranges(args)
     if args.seed < 0:
         fail(f"--seed must be a non-negative integer (got {args.seed}); numpy and gymnasium refuse negative seeds")
     if args.torch_threads < 1:
