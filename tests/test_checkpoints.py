@@ -443,3 +443,28 @@ def test_a_restored_optimizer_keeps_each_groups_initial_learning_rate():
         group["initial_lr"] = 7e-4  # the saved value wins over the fresh one
     load_optimizer(restored, saved.state_dict())
     assert [g["initial_lr"] for g in restored.param_groups] == [1e-3, 3e-4]
+
+
+def test_a_corrupt_checkpoint_names_the_newest_intact_iteration_file(finished_run, tmp_path, capsys):
+    """Issue 49.4: a corrupt checkpoint.pt was refused, but the intact iteration_<i>.pt beside it was not named;
+    now the line names the newest intact one and the command that continues the run from it, which works."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run["run_dir"], run_dir)
+    (run_dir / "checkpoint.pt").write_bytes(b"\0" * 1000)  # a disk error, a damaged copy
+    with open(run_dir / "iteration_2.pt", "r+b") as f:  # the newest iteration file damaged too (the same length)
+        f.seek(os.path.getsize(run_dir / "iteration_2.pt") // 2)
+        f.write(b"\xff" * 64)
+    line = error_line(run_script("cascade_ppo_continuous.py", "--resume", run_dir))
+    intact = run_dir / "iteration_1.pt"
+    assert line.startswith(f"error: cannot read checkpoint {run_dir / 'checkpoint.pt'}"), line
+    assert line.endswith(f"is {intact} (the end of iteration 1): continue the run from there with: "
+                         f"python cascade_ppo_continuous.py --resume {intact}"), line
+    code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(intact))
+    assert code == 0 and message == "", message
+    assert cpc.load_checkpoint(str(run_dir))["global_step"] == finished_run["global_step"]  # the run is whole again
+    (run_dir / "checkpoint.pt").write_bytes(b"\0" * 1000)
+    for name in os.listdir(run_dir):
+        if name.startswith("iteration_"):
+            os.remove(run_dir / name)
+    assert "no intact iteration_<i>.pt is beside it" in error_line_in_process("cascade_ppo_continuous.py", "--resume",
+                                                                             str(run_dir))
