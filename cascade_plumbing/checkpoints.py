@@ -56,9 +56,13 @@ def write_failures(path: str, tmp: str):
         previous = f"the previous {os.path.basename(path)} is intact" if os.path.exists(path) else \
             f"no earlier {os.path.basename(path)} exists"
         if full:
-            fail(f"no space left on {folder}; {previous}; free some space and continue with --resume {folder}")
+            from .runs import no_space  # (runs imports this module)
+
+            no_space(folder, folder)  # --resume advised only where a checkpoint of the run exists
+        resume = ("continue with --resume " + folder if os.path.exists(os.path.join(folder, CHECKPOINT_NAME))
+                  else "start the run again (it has no checkpoint to resume)")
         fail(f"cannot write {tmp} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); {previous}; "
-             f"fix that and continue with --resume {folder}")
+             f"fix that and {resume}")
     except BaseException:  # stopped mid-write (Ctrl-C, SIGTERM): no partial file is left behind either
         with contextlib.suppress(OSError):
             os.remove(tmp)
