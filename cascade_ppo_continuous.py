@@ -600,7 +600,7 @@ def train(args: Args, checkpoint: dict | None = None,
                                  next_obs, next_done)
         run.iteration_done(iteration, global_step)
 
-    run.close(global_step, actor)
+    run.close(global_step)
     final_stats = obs_statistics(envs)
     envs.close()
     return {"actor": actor, "critic": critic, "run_dir": run.run_dir, "global_step": global_step,
@@ -810,6 +810,8 @@ class RunLog(RunRecord):
         (the members' at an iteration's end among them) is logged."""
         end_of_iteration = update == updates_per_iteration
         due = self.checkpoint_due(global_step)
+        if end_of_iteration and iteration == self.args.n:  # the final checkpoint: the final evaluation before it,
+            self.final_evaluation(global_step, actor)  # so that a stop right after it loses nothing
         self.log_evaluations(wait=end_of_iteration or due)  # finished evaluations; before a checkpoint, all
         if not (end_of_iteration or due):
             return
@@ -823,10 +825,13 @@ class RunLog(RunRecord):
         }
         self.save(payload, global_step, iteration if end_of_iteration else None)
 
-    def close(self, global_step: int, actor: CascadeActor) -> None:
+    def final_evaluation(self, global_step: int, actor: CascadeActor) -> None:
+        """The final policy, if the last step was not an eval step; logged before the final checkpoint."""
+        if self.runner is not None and global_step % self.args.eval_every >= self.args.num_envs:
+            self.evaluate(global_step, actor)
+
+    def close(self, global_step: int) -> None:
         if self.runner is not None:
-            if global_step % self.args.eval_every >= self.args.num_envs:
-                self.evaluate(global_step, actor)  # the final policy, if the last step was not an eval step
             self.log_evaluations(wait=True)
             self.runner.close()
         super().close(global_step)

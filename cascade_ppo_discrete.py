@@ -544,6 +544,11 @@ def train(args: Args, checkpoint: dict | None = None,
             run.stop_if_not_finite(loss, params, global_step, f"iteration {iteration}, update {update}")
 
             end_of_iteration = update == updates_per_iteration
+            if end_of_iteration and iteration == args.n and episodes is not None and \
+                    global_step % args.eval_every >= args.num_envs:
+                # the final policy, if the last step was not an eval step: logged before the final checkpoint,
+                # so that a stop right after it loses nothing
+                evaluate_and_log(global_step)
             if end_of_iteration or run.checkpoint_due(global_step):  # at an iteration's end also iteration_<i>.pt
                 run.save_state(CHECKPOINT_FORMAT, global_step, next_obs, next_done, eval_calls,
                                learner_state(actor, critic, optimizer, iteration, update, obs_dim, num_actions,
@@ -551,8 +556,6 @@ def train(args: Args, checkpoint: dict | None = None,
 
         say(f"iteration {iteration} done: global_step={global_step}, SPS={int(run.sps(global_step))}")
 
-    if episodes is not None and global_step % args.eval_every >= args.num_envs:
-        evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
     run.close(global_step, episodes)
     return {"actor": actor, "critic": critic, "run_dir": run.run_dir, "global_step": global_step}
 

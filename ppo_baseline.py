@@ -411,7 +411,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         run.stop_if_non_finite(loss, {"actor": actor, "critic": critic}, f"global_step={global_step} (update {update})")
         run.maybe_checkpoint(update, total_updates, global_step, actor, critic, optimizer, next_obs, next_done)
 
-    run.close(global_step, actor)
+    run.close(global_step)
     final_stats = obs_statistics(envs)
     envs.close()
     return {"actor": actor, "critic": critic, "run_dir": run.run_dir, "global_step": global_step,
@@ -560,6 +560,10 @@ class RunLog(RunRecord):
                          optimizer: torch.optim.Optimizer, next_obs: np.ndarray, next_done: np.ndarray) -> None:
         """At the end of the run and every --checkpoint-every steps."""
         now = update == total_updates or self.checkpoint_due(global_step)
+        if update == total_updates and self.args.eval_every and global_step % self.args.eval_every >= self.args.num_envs:
+            # the final policy, if the last step was not an eval step: logged before the final checkpoint, so
+            # that a stop right after it loses nothing
+            self.evaluate(global_step, actor)
         self.log_evaluations(wait=now)  # finished evaluations; before a checkpoint, all of them
         if now:
             self.save({
@@ -570,9 +574,7 @@ class RunLog(RunRecord):
                 "eval_calls": 0 if self.runner is None else self.runner.calls,
             }, global_step)
 
-    def close(self, global_step: int, actor: Actor) -> None:
-        if self.args.eval_every and global_step % self.args.eval_every >= self.args.num_envs:
-            self.evaluate(global_step, actor)  # the final policy, if the last step was not an eval step
+    def close(self, global_step: int) -> None:
         if self.runner is not None:
             self.log_evaluations(wait=True)
             self.runner.close()

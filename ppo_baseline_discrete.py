@@ -372,12 +372,14 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         loss, scalars = ppo_update(actor, critic, optimizer, batch, args)
         run.log_update(scalars, global_step)  # CleanRL's names
         run.stop_if_not_finite(loss, params, global_step, f"update {update}")
+        if update == total_updates and episodes is not None and global_step % args.eval_every >= args.num_envs:
+            # the final policy, if the last step was not an eval step: logged before the final checkpoint, so that
+            # a stop right after it loses nothing
+            evaluate_and_log(global_step)
         if update == total_updates or run.checkpoint_due(global_step):
             run.save_state(CHECKPOINT_FORMAT, global_step, next_obs, next_done, eval_calls,
                            learner_state(actor, critic, optimizer, update, obs_dim, num_actions, discretize))
 
-    if episodes is not None and global_step % args.eval_every >= args.num_envs:
-        evaluate_and_log(global_step)  # the final policy, if the last step was not an eval step
     run.close(global_step, episodes)
     return {"actor": actor, "critic": critic, "run_dir": run.run_dir, "global_step": global_step}
 

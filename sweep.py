@@ -21,6 +21,7 @@ the running runs (each resumes on the next call) and ends the sweep with one lin
 from __future__ import annotations
 
 import ast
+import fcntl
 import functools
 import glob
 import hashlib
@@ -42,6 +43,7 @@ from typing import Literal
 import tyro
 
 from cascade_plumbing.errors import fail
+from cascade_plumbing.processes import run_dies_with_parent
 from cascade_plumbing.tracking import check_wandb, duration
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
@@ -348,9 +350,13 @@ def execute(command: list[str], log_path: str, marker_path: str, cwd: str, ident
 
 
 def launch(command: list[str], log, cwd: str) -> subprocess.Popen:
+    """The run in a session of its own (a stop of the sweep reaches it from the sweep only), ending with the sweep:
+    a sweep killed even by SIGKILL sends it SIGTERM (Linux), and it stops at its checkpoint. A local run holds the
+    sweep folder's lock too (`lock_sweep_dir`), so no other sweep starts there before it has ended."""
     log.write(f"$ {shlex.join(command)}\n")
     log.flush()
-    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=cwd, start_new_session=True)
+    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=cwd, start_new_session=True,
+                            pass_fds=LOCK_FD, preexec_fn=run_dies_with_parent(os.getpid()))
 
 
 def launch_unless_stopping(command: list[str], log, cwd: str) -> subprocess.Popen | None:
@@ -364,6 +370,7 @@ def launch_unless_stopping(command: list[str], log, cwd: str) -> subprocess.Pope
 
 
 RUNNING: set[subprocess.Popen] = set()
+LOCK_FD: list[int] = []  # the sweep folder's lock (sweep.lock), held by the sweep and its local runs
 RUNNING_LOCK = threading.Lock()
 STOP: list[int] = []  # the signal that stops the sweep (SIGINT: Ctrl-C, SIGTERM: kill), once it came
 # the exit of a run the sweep stopped: the scripts exit 128 + SIGTERM, or die by it before their handler is set
@@ -566,6 +573,7 @@ def sweep() -> None:
         fail(f"script(s) not found in {ROOT}: {', '.join(missing)}")
     if args.track and todo:
         check_wandb()  # what every run checks at its start, once here: one line, not a failed sweep
+    LOCK_FD[:] = [lock_sweep_dir(sweep_dir)]  # before the folder is changed: no other sweep is using it
     removed = sum(remove_unresumable(os.path.join(track_dir, run.run_id)) for run, *_ in todo)
     print(f"[sweep] {len(runs)} runs in {sweep_dir}: {skipped} already finished, {len(todo)} to run "
           f"({args.backend} backend)" + (f"; removed {removed} run folder(s) without a checkpoint, left by runs "
@@ -612,6 +620,38 @@ def stop_line(signum: int, stopped: list[Run], not_started: int, tracker: Tracke
     parts.append(f"{tracker.done} done, {len(tracker.failed)} failed")
     return (f"[sweep] stopped by {signal.Signals(signum).name}: {'; '.join(parts)}; the same command continues "
             "the unfinished runs")
+
+
+def lock_sweep_dir(sweep_dir: str) -> int:
+    """An exclusive lock on `<sweep_dir>/sweep.lock` (flock; the file holds the sweep's pid), held until this sweep
+    and the runs it started have all ended (each run inherits the descriptor): a second sweep on the same folder
+    would remove a live run's folder or train the same run twice. Returns the descriptor; refused in one line."""
+    os.makedirs(sweep_dir, exist_ok=True)
+    path = os.path.join(sweep_dir, "sweep.lock")
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.read(fd, 64).decode(errors="replace").strip()
+        os.close(fd)
+        if holder.isdigit() and alive(int(holder)):
+            fail(f"another sweep (pid {holder}) is using {sweep_dir}; wait for it to end, or stop it (kill {holder}) "
+                 "and run this again")
+        fail(f"the runs of an ended sweep{f' (pid {holder})' if holder else ''} are still stopping in {sweep_dir}; "
+             "run this again once they have ended")
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def remove_unresumable(track_dir: str) -> int:

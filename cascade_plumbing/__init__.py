@@ -3,7 +3,8 @@
 Each script at the top level of the repository defines its own method: `Args`, the nets, the loss,
 the training loop and what is evaluated. Everything else lives here, once:
 
-- `errors`: the one-line error (`fail`);
+- `errors`: the one-line error (`fail`), the ranges of the real-valued settings (`check_ranges`);
+- `processes`: worker and run processes in process groups of their own that end with their parent;
 - `envs`: env construction, the wrappers that save and restore an env's state, training videos;
 - `tracking`: Weights & Biases (`--track`), the progress line;
 - `checkpoints`: atomic checkpoint files, their repair and loading;

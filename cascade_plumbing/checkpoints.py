@@ -56,9 +56,13 @@ def write_failures(path: str, tmp: str):
         previous = f"the previous {os.path.basename(path)} is intact" if os.path.exists(path) else \
             f"no earlier {os.path.basename(path)} exists"
         if full:
-            fail(f"no space left on {folder}; {previous}; free some space and continue with --resume {folder}")
+            from .runs import no_space  # (runs imports this module)
+
+            no_space(folder, folder)  # --resume advised only where a checkpoint of the run exists
+        resume = ("continue with --resume " + folder if os.path.exists(os.path.join(folder, CHECKPOINT_NAME))
+                  else "start the run again (it has no checkpoint to resume)")
         fail(f"cannot write {tmp} ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); {previous}; "
-             f"fix that and continue with --resume {folder}")
+             f"fix that and {resume}")
     except BaseException:  # stopped mid-write (Ctrl-C, SIGTERM): no partial file is left behind either
         with contextlib.suppress(OSError):
             os.remove(tmp)
@@ -109,7 +113,7 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "") -> 
         # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
-        fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__})")
+        fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__}){intact_beside(path)}")
     script = checkpoint_format.split("/")[0]
     saved = str(checkpoint.get("format", "")) if isinstance(checkpoint, dict) else ""
     if saved.startswith(f"{script}/") and saved != checkpoint_format:
@@ -119,6 +123,29 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "") -> 
         fail(f"{path} is not a {script} checkpoint")
     checkpoint["path"] = path
     return checkpoint
+
+
+def intact_beside(path: str) -> str:
+    """For a run's unreadable checkpoint.pt: "; " and the newest intact iteration_<i>.pt beside it, with the command
+    that continues the run from it (in the same folder), or "" if there is none."""
+    if os.path.basename(path) != CHECKPOINT_NAME:
+        return ""
+    run_dir = os.path.dirname(path)
+    numbered = []
+    for candidate in glob.glob(os.path.join(glob.escape(run_dir), "iteration_*.pt")):
+        number = os.path.basename(candidate)[len("iteration_"): -len(".pt")]
+        if number.isdigit():
+            numbered.append((int(number), candidate))
+    for i, candidate in sorted(numbered, reverse=True):
+        try:  # intact: a zip archive (what torch.save writes) whose every member matches its CRC
+            with zipfile.ZipFile(candidate) as archive:
+                if archive.testzip() is not None:
+                    continue
+        except (OSError, zipfile.BadZipFile):
+            continue
+        return (f"; the newest intact checkpoint beside it is {candidate} (the end of iteration {i}): continue the "
+                f"run from there with: python {os.path.basename(sys.argv[0])} --resume {candidate}")
+    return "; no intact iteration_<i>.pt is beside it to continue from: start a new run"
 
 
 def load_optimizer(optimizer: torch.optim.Optimizer, state: dict) -> None:

@@ -4,8 +4,10 @@ What is evaluated, and how it acts, is the script's (its `Evaluator`); this is o
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import multiprocessing
+import os
 import signal
 import traceback
 from collections.abc import Callable, Iterator
@@ -17,11 +19,16 @@ import torch
 
 from .envs import make_render_env, write_video
 from .errors import fail
+from .processes import own_group, starting_group_workers
 from .runs import set_threads
 
 
-def evaluation_worker(conn, make_context: Callable[[], Any], work: Callable[[Any, int, Any], Any]) -> None:
-    """Worker process: `context = make_context()` once, then `work(context, call, request)` for each request."""
+def evaluation_worker(conn, make_context: Callable[[], Any], work: Callable[[Any, int, Any], Any],
+                      parent: int) -> None:
+    """Worker process: `context = make_context()` once, then `work(context, call, request)` for each request.
+    In a process group of its own (a scheduler's SIGTERM to the run's group is the training process's to handle:
+    it stops at its checkpoint, or finishes after the final one), ending with the training process (`parent`)."""
+    own_group(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle
     torch.set_num_threads(1)
     context = make_context()
@@ -49,8 +56,13 @@ class EvaluationRunner:
         if in_worker:
             ctx = multiprocessing.get_context("spawn")  # fork is unsafe with torch threads
             self.conn, child = ctx.Pipe()
-            self.process = ctx.Process(target=evaluation_worker, args=(child, make_context, work), daemon=True)
-            self.process.start()
+            self.process = ctx.Process(target=evaluation_worker, args=(child, make_context, work, os.getpid()),
+                                       daemon=True)
+            with starting_group_workers():
+                self.process.start()
+            # at any exit (a stop, an error): a worker still starting has SIGTERM blocked, so multiprocessing's
+            # own end of daemon workers (SIGTERM, then an unbounded join) could wait on it forever
+            atexit.register(self.end)
         else:
             self.context = make_context()
 
@@ -79,8 +91,15 @@ class EvaluationRunner:
         if self.conn is not None:
             self.conn.send(None)
             self.process.join(timeout=10)
+            self.end()
         elif hasattr(self.context, "close"):
             self.context.close()
+
+    def end(self) -> None:
+        """The worker ended now if it has not (it holds nothing to keep)."""
+        if self.process is not None and self.process.is_alive():
+            self.process.kill()
+            self.process.join(timeout=10)
 
 
 class EvaluationEnvs:

@@ -3,6 +3,8 @@ resume, stop signals, and the command-line entry point."""
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import glob
 import os
 import random
@@ -11,6 +13,7 @@ import signal
 import socket
 import sys
 import tempfile
+import threading
 import time
 import weakref
 from collections.abc import Callable
@@ -23,7 +26,7 @@ from threadpoolctl import ThreadpoolController
 
 from .checkpoints import CHECKPOINT_NAME, repair_iteration_files
 from .envs import end_env_workers
-from .errors import fail
+from .errors import check_ranges, fail
 from .tracking import check_wandb, finish_wandb
 
 
@@ -144,15 +147,67 @@ def saving(path: str, payload: dict) -> None:
 OPEN_WRITERS: weakref.WeakSet = weakref.WeakSet()  # the runs' TensorBoard writers (cascade_plumbing.record adds them)
 
 
+def this_run_dir(args: Any, checkpoint: dict | None, started: float) -> str | None:
+    """The run's folder: the resumed checkpoint's, or for a new run the newest of its name made since it
+    `started` (None if it has made none yet)."""
+    if checkpoint is not None:
+        return os.path.dirname(checkpoint["path"])
+    pattern = os.path.join(glob.escape(args.track_dir), f"{glob.escape(args.env_id)}__{glob.escape(args.exp_name)}__{args.seed}__*")
+    mine = [d for d in glob.glob(pattern) if d.rsplit("__", 1)[1].isdigit() and int(d.rsplit("__", 1)[1]) >= int(started)]
+    return max(mine, key=os.path.getmtime) if mine else None
+
+
+def remove_unresumable_run(run_dir: str) -> bool:
+    """Remove a run folder that holds no checkpoint and nothing of another process (its TensorBoard writers closed
+    first: their flush thread must not write into the removed folder); whether it was removed."""
+    if not only_mine(run_dir):
+        return False
+    for writer in list(OPEN_WRITERS):
+        with contextlib.suppress(Exception):  # (a full disk may fail this last flush too)
+            writer.close()
+    shutil.rmtree(run_dir, ignore_errors=True)
+    return True
+
+
+def no_space(folder: str, run_dir: str | None) -> None:
+    """Stop on a full disk in one line with advice that works: after a checkpoint, --resume; before the first one
+    there is nothing to resume, so the run's half-made folder is removed and the line says to start again."""
+    script = os.path.basename(sys.argv[0])
+    checkpoint = None if run_dir is None else os.path.join(run_dir, CHECKPOINT_NAME)
+    if checkpoint is not None and os.path.exists(checkpoint):
+        fail(f"no space left on {folder}; the last checkpoint {checkpoint} is intact; free some space and continue "
+             f"with: python {script} --resume {run_dir}")
+    removed = f" (its folder {run_dir} is removed)" if run_dir is not None and remove_unresumable_run(run_dir) else ""
+    fail(f"no space left on {folder} before the run's first checkpoint, so there is nothing to resume{removed}; free "
+         "some space and start the run again")
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Whether `exc` (or an exception it was raised from) is a full disk (ENOSPC, or EDQUOT: a full quota)."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def quiet_writer_threads(hook: Callable = threading.excepthook) -> Callable:
+    """A threading.excepthook that leaves out a TensorBoard writer thread's failed write (a full disk): the training
+    thread meets the same error at its next write and reports it in one line (no second traceback)."""
+
+    def excepthook(info) -> None:
+        if type(info.thread).__name__ == "_AsyncWriterThread" and isinstance(info.exc_value, OSError):
+            return
+        hook(info)
+
+    excepthook.quiet_writer_threads = True
+    return excepthook
+
+
 def stopped(args: Any, checkpoint: dict | None, started: float) -> None:
     """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM).
     A new run stopped before its first checkpoint removes its folder: there is nothing in it to resume."""
-    if checkpoint is not None:
-        run_dir = os.path.dirname(checkpoint["path"])
-    else:  # this run's folder: the newest of its name, made since it started
-        pattern = os.path.join(glob.escape(args.track_dir), f"{glob.escape(args.env_id)}__{glob.escape(args.exp_name)}__{args.seed}__*")
-        mine = [d for d in glob.glob(pattern) if d.rsplit("__", 1)[1].isdigit() and int(d.rsplit("__", 1)[1]) >= int(started)]
-        run_dir = max(mine, key=os.path.getmtime) if mine else None
+    run_dir = this_run_dir(args, checkpoint, started)
     signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
     name = signal.Signals(signum).name
     script = os.path.basename(sys.argv[0])
@@ -160,10 +215,7 @@ def stopped(args: Any, checkpoint: dict | None, started: float) -> None:
         where = f"the last checkpoint is {os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}"
     else:
         where = "no checkpoint was written yet, so there is nothing to resume"
-        if checkpoint is None and run_dir is not None and only_mine(run_dir):
-            for writer in list(OPEN_WRITERS):  # their flush thread must not write into the removed folder
-                writer.close()
-            shutil.rmtree(run_dir, ignore_errors=True)
+        if checkpoint is None and run_dir is not None and remove_unresumable_run(run_dir):
             where += f" (its folder {run_dir} is removed)"
     print(f"\rstopped by {name}: {where}", file=sys.stderr, flush=True)
     sys.exit(128 + signum)
@@ -190,7 +242,9 @@ def script_name(file: str) -> str:
 
 
 def check_common_settings(args: Any) -> None:
-    """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left)."""
+    """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left);
+    first every real-valued setting: finite and in its range (errors.check_ranges)."""
+    check_ranges(args)
     if args.seed < 0:
         fail(f"--seed must be a non-negative integer (got {args.seed}); numpy and gymnasium refuse negative seeds")
     if args.torch_threads < 1:
@@ -228,6 +282,8 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         signal.signal(signal.SIGINT, stop_signal)
     # the checkpoint a resume would find finished (the same test): from its write on, a stop lets the run finish
     FINAL[:] = [lambda path, payload: finished(type(args)(**payload["args"]), {**payload, "path": path})]
+    if not getattr(threading.excepthook, "quiet_writer_threads", False):
+        threading.excepthook = quiet_writer_threads(threading.excepthook)
     started = time.time()
     try:
         train(args, checkpoint)
@@ -238,6 +294,10 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         if isinstance(exc, KeyboardInterrupt):
             end_env_workers()
             stopped(args, checkpoint, started)
+        if not isinstance(exc, SystemExit) and disk_full(exc):  # a log write (a checkpoint's says so itself)
+            end_env_workers()
+            run_dir = this_run_dir(args, checkpoint, started)
+            no_space(os.path.abspath(run_dir or args.track_dir), run_dir)
         raise
     # The work is done and saved: a stop from here on must not turn a finished run into a failed one (at
     # interpreter exit Python resets its own handlers to the default, which would die by the signal silently).

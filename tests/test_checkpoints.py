@@ -1,5 +1,6 @@
 """Long runs you can trust: atomic checkpoints, exact resume, saved-model evaluation, member returns, NaN guard."""
 
+import errno
 import hashlib
 import importlib
 import os
@@ -443,3 +444,90 @@ def test_a_restored_optimizer_keeps_each_groups_initial_learning_rate():
         group["initial_lr"] = 7e-4  # the saved value wins over the fresh one
     load_optimizer(restored, saved.state_dict())
     assert [g["initial_lr"] for g in restored.param_groups] == [1e-3, 3e-4]
+
+
+def test_a_corrupt_checkpoint_names_the_newest_intact_iteration_file(finished_run, tmp_path, capsys):
+    """Issue 49.4: a corrupt checkpoint.pt was refused, but the intact iteration_<i>.pt beside it was not named;
+    now the line names the newest intact one and the command that continues the run from it, which works."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run["run_dir"], run_dir)
+    (run_dir / "checkpoint.pt").write_bytes(b"\0" * 1000)  # a disk error, a damaged copy
+    with open(run_dir / "iteration_2.pt", "r+b") as f:  # the newest iteration file damaged too (the same length)
+        f.seek(os.path.getsize(run_dir / "iteration_2.pt") // 2)
+        f.write(b"\xff" * 64)
+    line = error_line(run_script("cascade_ppo_continuous.py", "--resume", run_dir))
+    intact = run_dir / "iteration_1.pt"
+    assert line.startswith(f"error: cannot read checkpoint {run_dir / 'checkpoint.pt'}"), line
+    assert line.endswith(f"is {intact} (the end of iteration 1): continue the run from there with: "
+                         f"python cascade_ppo_continuous.py --resume {intact}"), line
+    code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(intact))
+    assert code == 0 and message == "", message
+    assert cpc.load_checkpoint(str(run_dir))["global_step"] == finished_run["global_step"]  # the run is whole again
+    (run_dir / "checkpoint.pt").write_bytes(b"\0" * 1000)
+    for name in os.listdir(run_dir):
+        if name.startswith("iteration_"):
+            os.remove(run_dir / name)
+    assert "no intact iteration_<i>.pt is beside it" in error_line_in_process("cascade_ppo_continuous.py", "--resume",
+                                                                             str(run_dir))
+
+
+# A run whose TensorBoard writes fail with ENOSPC (a full disk), from the first write after its first checkpoint
+# ("after") or from its 21st write on, long before its first checkpoint ("before").
+FULL_DISK_DRIVER = """
+import errno, glob, os, sys
+from tensorboard.summary.writer import record_writer
+track, mode = sys.argv[1], sys.argv[2]
+original, writes = record_writer.RecordWriter.write, []
+def write(self, data):
+    writes.append(1)
+    if glob.glob(os.path.join(track, "*", "checkpoint.pt")) if mode == "after" else len(writes) > 20:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    original(self, data)
+record_writer.RecordWriter.write = write
+import cascade_ppo_continuous
+sys.argv = ["cascade_ppo_continuous.py", *sys.argv[3:]]
+cascade_ppo_continuous.main()
+"""
+FULL_DISK_FLAGS = ["--env-id", "InvertedPendulum-v4", "--n", "1", "--num-steps", "256", "--num-minibatches", "4",
+                   "--update-epochs", "1", "--eval-every", "0", "--quiet"]
+
+
+@pytest.mark.parametrize("mode", ["after", "before"])
+def test_a_full_disk_in_a_log_write_is_one_line_with_advice_that_works(mode, tmp_path):
+    """Issue 49.3: ENOSPC in a TensorBoard write gave two tracebacks (58 lines: the writer thread's and the training
+    thread's). Now one line: after a checkpoint, the --resume that continues the run (it does); before the first
+    one, that there is nothing to resume (the half-made folder is removed) and to start again."""
+    flags = [*FULL_DISK_FLAGS, "--k", "2048", "--checkpoint-every", "256"] if mode == "after" else \
+        [*FULL_DISK_FLAGS, "--k", "1000000", "--checkpoint-every", "0"]
+    proc = subprocess.run([sys.executable, "-c", FULL_DISK_DRIVER, str(tmp_path), mode, *flags, "--track-dir",
+                           str(tmp_path)], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    line = error_line(proc)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    if mode == "after":
+        (run_dir,) = [tmp_path / d for d in os.listdir(tmp_path)]
+        assert line == (f"error: no space left on {run_dir}; the last checkpoint {run_dir / 'checkpoint.pt'} is "
+                        f"intact; free some space and continue with: python cascade_ppo_continuous.py --resume "
+                        f"{run_dir}"), line
+        resumed = run_script("cascade_ppo_continuous.py", "--resume", run_dir)  # the advice works
+        assert resumed.returncode == 0, resumed.stderr[-2000:]
+        assert cpc.load_checkpoint(str(run_dir))["global_step"] == 2048
+    else:
+        assert line.startswith(f"error: no space left on {tmp_path}") and "--resume" not in line, line
+        assert line.endswith("is removed); free some space and start the run again"), line
+        assert os.listdir(tmp_path) == []  # the half-made run folder is gone (nothing in it to resume)
+
+
+def test_a_full_disk_at_the_first_checkpoint_does_not_advise_resume(tmp_path, monkeypatch):
+    """Issue 49.3: a full disk at the first checkpoint's write advised `--resume <folder>`, which then failed (no
+    checkpoint there). Now: nothing to resume, the half-made folder removed, start again."""
+    def no_space(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(torch, "save", no_space)
+    with pytest.raises(SystemExit) as stop:
+        cpc.train(cpc.Args(**{**BASE, "n": 1, "k": 256, "eval_every": 0}, checkpoint_every=0,
+                           track_dir=str(tmp_path)))
+    line = str(stop.value)
+    assert line.startswith("error: no space left on") and "before the run's first checkpoint" in line, line
+    assert "--resume" not in line and "is removed" in line and "\n" not in line, line
+    assert os.listdir(tmp_path) == []

@@ -173,3 +173,85 @@ def test_a_stopped_sweep_says_one_line(tmp_path, signum):
     else:
         assert f"{run_id} (starts over: no checkpoint yet)" in lines[2]
         assert os.listdir(tmp_path / "runs" / run_id) == []  # the run removed its folder itself
+
+
+def start_in_own_session(script, *args):
+    """A script as a job scheduler starts it: in a session (and process group) of its own, which it stops with
+    SIGTERM to the whole group (`kill -TERM -<pgid>`)."""
+    return subprocess.Popen([sys.executable, os.path.join(ROOT, script), *map(str, args)], cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+
+
+@pytest.mark.parametrize("script", [FLAGSHIP, BASELINE])
+def test_sigterm_to_the_process_group_after_the_final_checkpoint_lets_the_run_finish(tmp_path, script):
+    """Issue 49.1: SIGTERM to the run's whole process group, as job schedulers send it, killed the evaluation
+    worker too; the run then failed (exit 1, "the evaluation worker process died") without its final evaluation.
+    The worker is in a group of its own now: the stop reaches the training process only, which finishes."""
+    proc = start_in_own_session(script, *TINY[script], "--track-dir", tmp_path)
+    wait_for(str(tmp_path / "*" / "checkpoint.pt"), proc)  # the only checkpoint of these runs: the final one
+    os.killpg(proc.pid, signal.SIGTERM)
+    code, out, err = finish(proc)
+    assert code == 0, err[-2000:]
+    assert "Traceback" not in err and "worker process died" not in err, err[-2000:]
+    assert eval_steps(only_run_dir(tmp_path)) == EVAL_STEPS  # complete: the final evaluation too
+    again = run_script(script, "--resume", only_run_dir(tmp_path))
+    assert again.returncode == 0 and "nothing to resume" in again.stdout, again.stderr[-2000:]
+
+
+def test_sigterm_to_the_process_group_mid_run_stops_it_at_its_checkpoint(tmp_path):
+    """The same group SIGTERM before the end: the run stops with its one line (exit 143), its worker ends with it."""
+    proc = start_in_own_session(FLAGSHIP, "--n", "1", "--k", "1000000", "--checkpoint-every", "2048", *ENV, *COMMON,
+                                "--track-dir", tmp_path)
+    wait_for(str(tmp_path / "*" / "checkpoint.pt"), proc)
+    workers = children(proc.pid)
+    os.killpg(proc.pid, signal.SIGTERM)
+    code, out, err = finish(proc, timeout=120)
+    assert code == 128 + signal.SIGTERM, err[-2000:]
+    lines = [line.strip("\r") for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("stopped by SIGTERM: the last checkpoint is"), err
+    deadline = time.time() + 10
+    while any(os.path.exists(f"/proc/{pid}") for pid in workers) and time.time() < deadline:
+        time.sleep(0.1)
+    assert workers and not any(os.path.exists(f"/proc/{pid}") for pid in workers)  # they ended with the run
+
+
+def children(pid):
+    """The pids of `pid`'s child processes (Linux)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        if entry.isdigit() and int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            found.append(int(entry))
+    return found
+
+
+@pytest.mark.parametrize("script,flags", [
+    (FLAGSHIP, FLAGS[FLAGSHIP] + ENV),
+    (BASELINE, FLAGS[BASELINE] + ENV),
+    ("cascade_ppo_discrete.py", ["--n", "1", "--k", "2048", "--env-id", "CartPole-v1"]),
+    ("ppo_baseline_discrete.py", ["--total-timesteps", "2048", "--env-id", "CartPole-v1"]),
+])
+def test_the_final_evaluation_is_logged_before_the_final_checkpoint(tmp_path, monkeypatch, script, flags):
+    """Issue 49.1: the PPO scripts evaluated the final policy after the final checkpoint, so a kill in the second
+    after it lost that evaluation for good (a resume has nothing to do). SAC and DDPG evaluated it first."""
+    import importlib
+
+    from cascade_plumbing import record
+
+    module = importlib.import_module(script[: -len(".py")])
+    seen = []
+    original = record.save_checkpoint
+
+    def save_and_look(path, payload):
+        original(path, payload)
+        seen.append((payload["global_step"], eval_steps(os.path.dirname(path))))
+
+    monkeypatch.setattr(record, "save_checkpoint", save_and_look)
+    monkeypatch.setattr(sys, "argv", [script, *flags, *COMMON, "--no-eval-in-worker" if "baseline.py" in script or
+                                      script == FLAGSHIP else "--quiet", "--track-dir", str(tmp_path)])
+    module.main()
+    assert seen[-1] == (2048, EVAL_STEPS)

@@ -244,3 +244,52 @@ def test_progress_eta_is_a_duration_that_can_pass_a_day(capsys):
     tracker.started(run)
     tracker.finished(run, 0, "log", seconds=7 * 3600 + 5 * 60)  # 4 runs left at 7 h 05 min each: 28 h 20 min
     assert "ETA about 28 h 20 min left" in capsys.readouterr().out
+
+
+LONG = ("cascade_ppo_continuous.py --n 1 --k 1000000 --num-steps 256 --num-minibatches 4 --update-epochs 1 "
+        "--eval-every 0 --checkpoint-every 256 --quiet")
+
+
+def test_a_sweep_folder_has_one_sweep_and_a_killed_sweeps_runs_stop(tmp_path):
+    """Issue 49.2: a sweep killed with SIGKILL left its runs running, and a second sweep on the same folder then
+    trained the same run beside it (or removed the folder of a run not yet checkpointed). Now the folder is locked
+    for a sweep's lifetime (and its runs'), and the runs of a killed sweep get SIGTERM and stop at their checkpoint."""
+    import glob
+    import time
+
+    args = [sys.executable, os.path.join(ROOT, "sweep.py"), "--command", LONG, "--envs", "InvertedPendulum-v4",
+            "--workers", "1", "--status-every", "3600", "--sweep-dir", str(tmp_path)]
+    first = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 300
+        while not glob.glob(str(tmp_path / "runs" / "*" / "*" / "checkpoint.pt")):
+            assert first.poll() is None and time.time() < deadline, "the first sweep's run wrote no checkpoint"
+            time.sleep(0.1)
+        (events,) = glob.glob(str(tmp_path / "runs" / "*" / "*" / "events.out.tfevents.*"))
+        run_pid = int(os.path.basename(events).split(".")[-2])
+        second = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            out, err = second.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            second.kill()
+            second.communicate()
+            pytest.fail("a second sweep on the same folder ran beside the first")
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert second.returncode == 1 and len(lines) == 1, err
+        assert lines[0] == (f"error: another sweep (pid {first.pid}) is using {tmp_path}; wait for it to end, or "
+                            f"stop it (kill {first.pid}) and run this again"), lines[0]
+        assert out == ""  # it changed nothing (no start line: nothing removed, no run started)
+        first.kill()  # SIGKILL: no handler of the sweep runs
+        first.wait()
+        deadline = time.time() + 120
+        while os.path.exists(f"/proc/{run_pid}") and not open(f"/proc/{run_pid}/stat").read().split()[2] == "Z":
+            assert time.time() < deadline, "the killed sweep's run is still running"
+            time.sleep(0.1)
+    finally:
+        if first.poll() is None:
+            first.kill()
+    (log,) = glob.glob(str(tmp_path / "logs" / "*.log"))
+    with open(log) as f:
+        assert "stopped by SIGTERM: the last checkpoint is" in f.read()  # it stopped cleanly, at its checkpoint
+    os.close(sweep.lock_sweep_dir(str(tmp_path)))  # the folder is free again
+    assert not os.path.exists(tmp_path / "done")
