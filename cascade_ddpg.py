@@ -67,7 +67,7 @@ class Args:
     autograd: bool = False
     """act with `explore` and update with `ddpg_update` (autograd) only, no fast paths (slower; the same results up to float rounding)"""
     cuda: bool = False
-    """train on the GPU if torch sees one (slower for these small nets: ~0.5x one CPU core, README "SAC and DDPG"); --evaluate runs on the CPU"""
+    """train on the GPU if torch sees one (slower for these small nets: ~0.5x one CPU core, docs/performance.md, "SAC and DDPG on a GPU"); --evaluate runs on the CPU"""
     track_dir: str = "runs"
     """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
     track: bool = False
@@ -109,9 +109,9 @@ class Args:
     restart_on_new_net: bool = True
     """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critic re-copied, target actor = copy of the whole cascade, critic optimizer recreated; `--no-restart-on-new-net`: target critic and critic optimizer kept, the target actor gets the new net with the online net's init, the current policy collects the warm-up (the paper's text); the actor optimizer is new either way"""
 
-    # DDPG (CleanRL ddpg_continuous_action's defaults, except where the paper's code differs: see the README)
+    # DDPG (CleanRL ddpg_continuous_action's defaults, except where the paper's code differs: docs/sac_ddpg.md)
     buffer_size: int = 1_000_000
-    """the replay memory capacity (float32 numpy, preallocated; see the README for the memory it takes)"""
+    """the replay memory capacity (float32 numpy, preallocated; the memory it takes: docs/sac_ddpg.md, "Replay-buffer memory")"""
     gamma: float = 0.99
     """the discount factor gamma"""
     tau: float = 0.005
@@ -555,7 +555,7 @@ def member_policy(actor: CascadeActor, net: int, noise: float) -> Policy:
 
 # ----------------------------------------------------------------------------------------------
 # Fast paths: the same update with hand-written gradients, and the same acting in numpy
-# (cascade_plumbing/fast_offpolicy.py; README "SAC and DDPG"), checked against `ddpg_update` and `explore` while the
+# (cascade_plumbing/fast_offpolicy.py; docs/performance.md, "SAC and DDPG on a GPU"), checked against `ddpg_update` and `explore` while the
 # run trains: at each new net, then about every 2000 steps, both run on float64 copies from the same random state. Edit
 # `ddpg_update`, `explore` and the nets above, not the fast paths: an edit they do not reproduce switches them off
 # with one warning line, and the run continues exactly as --autograd runs it. On the CPU only.

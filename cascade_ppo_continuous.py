@@ -17,7 +17,7 @@ it acts, the loss, the training loop, the evaluation): the one definition of the
 edit it. Section 2 switches on fast paths (cascade_plumbing/fast.py: a numpy acting forward and sampler,
 hand-written gradients); they are checked against section 1 while training, and a run whose section 1 was
 edited so that they no longer match on the checked inputs switches to section 1 by itself, with one warning
-line (what the checks cannot see: "Hacking Cascade" in the README). Section 3
+line (what the checks cannot see: docs/hacking.md). Section 3
 wires the run to the shared plumbing (cascade_plumbing/: envs, logging, checkpoints, command line).
 
     python cascade_ppo_continuous.py --env-id Ant-v4 --n 6 --k 1000000
@@ -73,7 +73,7 @@ class Args:
     torch_threads: int = 1
     """torch CPU threads (numpy's BLAS: one); 1 is fastest for these small nets"""
     cuda: bool = False
-    """train on the GPU if torch sees one: slower for these small nets (~0.26x the steps/s of one CPU core, README "Performance"); --evaluate runs on the CPU"""
+    """train on the GPU if torch sees one: slower for these small nets (~0.26x the steps/s of one CPU core, docs/performance.md); --evaluate runs on the CPU"""
     track_dir: str = "runs"
     """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
     track: bool = False
@@ -414,7 +414,7 @@ def autograd_gradients(actor: CascadeActor, critic: TanhMLP, params: list[nn.Par
                        args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The loss of one minibatch and its gradient by autograd, written into every parameter's .grad.
     Keep it (and `ppo_loss`, `optimizer_step`) free of side effects: on the fast path it runs only inside the
-    run-time checks, on float64 copies (see "Hacking Cascade" in the README)."""
+    run-time checks, on float64 copies (see docs/hacking.md)."""
     obs, actions, old_logprob, advantages, returns, old_value = minibatch
     with torch.enable_grad():
         mean, log_std, _, _ = actor(obs)

@@ -13,7 +13,7 @@ Reading order as in cascade_ppo_continuous.py: `Args`; section 1, the algorithm 
 math, and the place to edit it. Section 2 switches on fast paths (cascade_plumbing/fast.py: a numpy acting
 forward and sampler, hand-written gradients); they are checked against section 1 while training, and a run
 whose section 1 was edited so that they no longer match on the checked inputs switches to section 1 by
-itself, with one warning line (what the checks cannot see: "Hacking Cascade" in the README). Section 3 wires the run to the shared plumbing (cascade_plumbing/: envs, logging, checkpoints, command
+itself, with one warning line (what the checks cannot see: docs/hacking.md). Section 3 wires the run to the shared plumbing (cascade_plumbing/: envs, logging, checkpoints, command
 line).
 
     python ppo_baseline.py --env-id Ant-v4 --total-timesteps 6000000
@@ -69,7 +69,7 @@ class Args:
     torch_threads: int = 1
     """torch CPU threads (numpy's BLAS: one); 1 is fastest for these small nets"""
     cuda: bool = False
-    """train on the GPU if torch sees one: slower for these small nets (measured for Cascade: README "Performance"); --evaluate runs on the CPU"""
+    """train on the GPU if torch sees one: slower for these small nets (measured for Cascade: docs/performance.md); --evaluate runs on the CPU"""
     track_dir: str = "runs"
     """folder for the run folders `<track-dir>/<run_name>` (TensorBoard logs, checkpoints); W&B is --track"""
     track: bool = False
@@ -254,7 +254,7 @@ def autograd_gradients(actor: Actor, critic: TanhMLP, params: list[nn.Parameter]
                        args: Args) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The loss of one minibatch and its gradient by autograd, written into every parameter's .grad.
     Keep it (and `ppo_loss`, `optimizer_step`) free of side effects: on the fast path it runs only inside the
-    run-time checks, on float64 copies (see "Hacking Cascade" in the README)."""
+    run-time checks, on float64 copies (see docs/hacking.md)."""
     obs, actions, old_logprob, advantages, returns, old_value = minibatch
     with torch.enable_grad():
         mean, log_std = actor(obs)

@@ -15,7 +15,7 @@ the running runs (each resumes on the next call) and ends the sweep with one lin
     python sweep.py --preset standard --envs Hopper-v4 --seeds 1 2 --scale 0.01
     python sweep.py --preset standard --envs Ant-v4 Walker2d-v4 --seeds 1 2 3 --backend ray --ray-address auto
     python sweep.py --command "cascade_ppo_continuous.py --n 3 --k 500000" --envs Hopper-v4 --seeds 1 2 --dry-run
-    python plots/learning_curves.py --runs sweeps/standard/runs      # then plot (see README)
+    python plots/learning_curves.py --runs sweeps/standard/runs      # then plot (see docs/reproducing.md)
 """
 
 from __future__ import annotations

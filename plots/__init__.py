@@ -1,1 +1,1 @@
-"""The paper's figures and tables from our own runs: `python plots/<script>.py --help` (see README)."""
+"""The paper's figures and tables from our own runs: `python plots/<script>.py --help` (see docs/reproducing.md)."""

@@ -72,13 +72,14 @@ BASELINE_RUN = dict(env_id="Hopper-v4", total_timesteps=1024, eval_every=384, ev
 @pytest.fixture(scope="module")
 def flagship_run(tmp_path_factory):
     """Evaluations (calls) at steps 0 (0), 384 (1), net 1 alone at 512 (2; iteration_1.pt: eval_calls 3),
-    768 (3), nets 1 and 2 alone at 1024 (4, 5; iteration_2.pt: eval_calls 6), the final policy at 1024 (6)."""
+    768 (3), nets 1 and 2 alone at 1024 (4, 5), the final policy at 1024 (6; logged before iteration_2.pt is
+    written, so that checkpoint holds eval_calls 7)."""
     return cpc.train(cpc.Args(track_dir=str(tmp_path_factory.mktemp("flagship")), **FLAGSHIP_RUN))
 
 
 @pytest.fixture(scope="module")
 def baseline_run(tmp_path_factory):
-    """Evaluations at steps 0, 384, 768 and the final policy at 1024, after the run's one checkpoint."""
+    """Evaluations at steps 0, 384, 768 and the final policy at 1024 (call 3), before the run's one checkpoint."""
     return ppo_baseline.train(ppo_baseline.Args(track_dir=str(tmp_path_factory.mktemp("baseline")), **BASELINE_RUN))
 
 
@@ -92,17 +93,17 @@ def test_flagship_evaluations_use_the_training_statistics_of_their_step(flagship
     first = load(cpc, os.path.join(run_dir, "iteration_1.pt"))
     last = load(cpc, os.path.join(run_dir, "iteration_2.pt"))
     assert (first["global_step"], last["global_step"]) == (512, 1024)
-    assert (first["eval_calls"], last["eval_calls"]) == (3, 6)
+    assert (first["eval_calls"], last["eval_calls"]) == (3, 7)
     seed = FLAGSHIP_RUN["seed"]
 
-    # the final policy, evaluated right after iteration_2.pt was written: its call is the checkpoint's count
+    # the final policy, evaluated right before iteration_2.pt was written: the checkpoint counts its call
     actor, stats = cpc.actor_from_checkpoint(last), last["obs_stats"]
     assert stats is not None
-    direct = evaluate_directly(cpc, "Hopper-v4", seed, actor, stats, last["eval_calls"]).mean()
+    direct = evaluate_directly(cpc, "Hopper-v4", seed, actor, stats, last["eval_calls"] - 1).mean()
     assert close_to(final[1024], direct), (final[1024], direct)
     # the comparison can see wrong statistics: none at all (raw observations), or an earlier step's
-    raw = evaluate_directly(cpc, "Hopper-v4", seed, actor, None, last["eval_calls"]).mean()
-    stale = evaluate_directly(cpc, "Hopper-v4", seed, actor, first["obs_stats"], last["eval_calls"]).mean()
+    raw = evaluate_directly(cpc, "Hopper-v4", seed, actor, None, last["eval_calls"] - 1).mean()
+    stale = evaluate_directly(cpc, "Hopper-v4", seed, actor, first["obs_stats"], last["eval_calls"] - 1).mean()
     assert clearly_apart(raw, direct) and clearly_apart(stale, direct), (raw, stale, direct)
 
     # net 1 alone at the end of iteration 1, the last evaluation before iteration_1.pt was written
@@ -119,13 +120,13 @@ def test_baseline_final_evaluation_uses_the_training_statistics(baseline_run):
     final = dict(read_scalars(run_dir)["eval/episodic_return"])
     assert sorted(final) == [0, 384, 768, 1024]
     checkpoint = load(ppo_baseline, run_dir)
-    assert checkpoint["global_step"] == 1024 and checkpoint["eval_calls"] == 3
+    assert checkpoint["global_step"] == 1024 and checkpoint["eval_calls"] == 4
     actor, stats = ppo_baseline.actor_from_checkpoint(checkpoint), checkpoint["obs_stats"]
     assert stats is not None
     seed = BASELINE_RUN["seed"]
-    direct = evaluate_directly(ppo_baseline, "Hopper-v4", seed, actor, stats, checkpoint["eval_calls"]).mean()
+    direct = evaluate_directly(ppo_baseline, "Hopper-v4", seed, actor, stats, checkpoint["eval_calls"] - 1).mean()
     assert close_to(final[1024], direct), (final[1024], direct)
-    raw = evaluate_directly(ppo_baseline, "Hopper-v4", seed, actor, None, checkpoint["eval_calls"]).mean()
+    raw = evaluate_directly(ppo_baseline, "Hopper-v4", seed, actor, None, checkpoint["eval_calls"] - 1).mean()
     assert clearly_apart(raw, direct), (raw, direct)
 
 
