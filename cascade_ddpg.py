@@ -63,7 +63,7 @@ class Args:
     torch_deterministic: bool = True
     """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
-    """torch CPU threads (numpy's BLAS: one); 1: these nets are too small for a second thread to pay (README, speed of SAC and DDPG)"""
+    """torch CPU threads (numpy's BLAS: one); 1: these nets are too small for a second thread to pay (docs/performance.md, "SAC and DDPG")"""
     autograd: bool = False
     """act with `explore` and update with `ddpg_update` (autograd) only, no fast paths (slower; the same results up to float rounding)"""
     cuda: bool = False

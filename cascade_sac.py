@@ -59,7 +59,7 @@ class Args:
     torch_deterministic: bool = True
     """CleanRL's flag: `torch.backends.cudnn.deterministic` (GPU runs only; a CPU run repeats exactly on the same machine either way)"""
     torch_threads: int = 1
-    """torch CPU threads (numpy's BLAS: one); 1: a second made the SAC baseline slower, not faster (README, speed of SAC and DDPG): run one run per core"""
+    """torch CPU threads (numpy's BLAS: one); 1: a second made the SAC baseline slower, not faster (docs/performance.md, "SAC and DDPG"): run one run per core"""
     autograd: bool = False
     """act with `explore` and update with `sac_update` (autograd) only, no fast paths (slower; the same results up to float rounding)"""
     cuda: bool = False

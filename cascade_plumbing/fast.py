@@ -109,8 +109,8 @@ def fast_optimizer_step(flat: nn.Parameter, optimizer: torch.optim.Adam, max_nor
 
 
 # Relative disagreement (max |fast - reference| / max |reference|, in float64) above which a fast path
-# counts as not matching section 1. Measured on the unmodified script: at most ~1e-13 (README, "Hacking
-# Cascade"); the smallest edit tried (0.01 * mean.pow(2).mean() added to the loss) differs by ~2e-7 at the
+# counts as not matching section 1. Measured on the unmodified script: at most ~1e-13 (docs/hacking.md,
+# the checks); the smallest edit tried (0.01 * mean.pow(2).mean() added to the loss) differs by ~2e-7 at the
 # first update, when the means are still ~0.01, and by more as they grow.
 FAST_PATH_TOLERANCE = 1e-9
 # The loss and its parts (policy and value loss, entropy, ratios) are compared relative to at least this: they

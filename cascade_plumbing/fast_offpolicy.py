@@ -3,7 +3,7 @@
 
 Why: an update of these small nets is mostly per-operation overhead (autograd's graph, torch's dispatch), and on
 the AMD EPYC CPUs we run on torch's CPU build computes tanh ~7x and a 256-wide layer's few-column head ~9x slower
-than numpy does (its matmuls go through Intel's MKL; README, "SAC and DDPG"). So the fast update writes each
+than numpy does (its matmuls go through Intel's MKL; docs/performance.md, "SAC and DDPG"). So the fast update writes each
 gradient out and computes it in numpy, on views of the nets' own memory (a numpy operation on these arrays costs
 ~1 us, torch's ~3-7 us; torch's kernels for the ReLU and its backward, the sigmoid, SAC's tanh of its log-std and
 of its sample, Adam and the soft target updates), and acting runs the one observation through numpy views of the

@@ -47,7 +47,7 @@ def check_track_dir(track_dir: str) -> None:
 def set_threads(threads: int) -> None:
     """`threads` CPU threads for torch; one for numpy's OpenBLAS. It would otherwise take every core for a 256-wide
     product (the SAC fast path's), so one run would use two cores; and with torch's OpenMP threads beside its own,
-    both spinning between calls, a 2-thread SAC run measured 15x slower (README, "SAC and DDPG"). Only OpenBLAS (what
+    both spinning between calls, a 2-thread SAC run measured 15x slower (docs/performance.md, "SAC and DDPG"). Only OpenBLAS (what
     numpy's wheels carry): a BLAS that torch shares (a conda MKL) keeps torch's setting."""
     torch.set_num_threads(threads)
     ThreadpoolController().select(internal_api="openblas").limit(limits=1)
