@@ -136,7 +136,8 @@ def find_run_dirs(roots: Sequence[str]) -> list[str]:
     for root in roots:
         if not os.path.isdir(root):
             fail(f"runs folder '{root}' does not exist")
-        for folder, _dirs, files in os.walk(root):
+        # normpath: a run folder given with a trailing slash would otherwise have an empty basename
+        for folder, _dirs, files in os.walk(os.path.normpath(root)):
             if parse_run_name(os.path.basename(folder)) and has_event_files(folder):
                 found.append(folder)
             found += [os.path.join(folder, f) for f in files if f.endswith(".json") and parse_run_name(f[:-5])]

@@ -115,11 +115,15 @@ def main(args: Args) -> list[str]:
         commit = head.stdout.strip() or None
     os.makedirs(args.out, exist_ok=True)
     written = []
-    for path in common.find_run_dirs(args.runs):
+    found = common.find_run_dirs(args.runs)
+    if not any(not path.endswith(".json") for path in found):
+        common.fail(f"no run folders (named like a run, holding TensorBoard event files) under {' '.join(args.runs)}")
+    for path in found:
         if path.endswith(".json"):
             continue  # already exported
         target = os.path.join(args.out, os.path.basename(path) + ".json")
         if os.path.exists(target) and not args.overwrite:
+            common.note(f"skipped {path}: {target} exists (--overwrite replaces it)")
             continue
         run = common.read_run(path)
         planned = planned_steps(run.hparams)

@@ -487,6 +487,17 @@ def test_exported_runs_hold_what_the_figures_read(runs, tmp_path, capsys):
     assert export_results.main(args) == []
     assert "evaluated up to step 500,000 of 999,424 (unfinished)" in capsys.readouterr().err
     assert len(export_results.main(dataclasses.replace(args, allow_incomplete=True))) == 1
+    # one run folder given itself, with a trailing slash (as a shell completes it), is that run; a folder
+    # with no run in it is an error, not a silent nothing; a file already there is named when skipped
+    one = runs["baseline"][0] + os.sep
+    written = export_results.main(export_results.Args(runs=[one], out=str(tmp_path / "one")))
+    assert written == [str(tmp_path / "one" / f"{os.path.basename(runs['baseline'][0])}.json")]
+    capsys.readouterr()
+    assert export_results.main(export_results.Args(runs=[one], out=str(tmp_path / "one"))) == []
+    assert "exists (--overwrite replaces it)" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match="no run folders"):
+        export_results.main(export_results.Args(runs=[str(tmp_path / "empty")], out=str(tmp_path / "none")))
 
 
 def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
