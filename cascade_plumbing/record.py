@@ -23,6 +23,19 @@ from .runs import OPEN_WRITERS, rng_states, run_name, set_rng_states
 from .tracking import VIDEO_ROOT, Progress, finish_wandb, finished_videos, log_new_videos, start_wandb
 
 
+def wait_to_name_events_after(run_dir: str) -> None:
+    """Wait (at most a second) until a new events file's name sorts after every one in `run_dir`.
+
+    TensorBoard reads a folder's events files in name order, `events.out.tfevents.<second>.<host>.<pid>.<count>`:
+    a resume within the second the killed run's file was named can sort before it (count 10 before 9), and its
+    curves are then read out of order."""
+    prefix = "events.out.tfevents."
+    seconds = [int(name.split(".")[3]) for name in os.listdir(run_dir)
+               if name.startswith(prefix) and name.split(".")[3].isdigit()]
+    while seconds and time.time() < max(seconds) + 1:
+        time.sleep(0.02)
+
+
 class RunRecord:
     """A run's folder `<track_dir>/<run_name>` and everything written there, for a new run or a resumed one
     (`checkpoint`, whose folder it continues). `envs` are the training envs (their RunState wrappers).
@@ -56,6 +69,7 @@ class RunRecord:
                 "|param|value|\n|-|-|\n" + "\n".join(f"|{key}|{value}|" for key, value in asdict(args).items()),
             )
         else:  # purge_step hides whatever the killed run logged after its last checkpoint
+            wait_to_name_events_after(self.run_dir)
             self.writer = SummaryWriter(self.run_dir, purge_step=checkpoint["global_step"] + 1)
         OPEN_WRITERS.add(self.writer)
         self.video_folder = os.path.join(VIDEO_ROOT, name) if args.capture_video else None

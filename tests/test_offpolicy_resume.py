@@ -7,6 +7,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -127,6 +128,27 @@ def test_a_kill_between_the_rows_and_the_checkpoint_loses_nothing(algo, uninterr
     run_dir = only_run_dir(tmp_path)
     assert mod.load_checkpoint(run_dir)["global_step"] == 140
     assert_identical(expected, final_state(resume(mod, run_dir), algo))
+
+
+def test_a_resume_named_in_the_same_second_is_read_after_the_killed_run(uninterrupted, tmp_path, monkeypatch):
+    """TensorBoard reads a run folder's events files in name order (`...tfevents.<second>.<host>.<pid>.<count>`):
+    a resume named within the second of the killed run's file could sort before it (count 10 before 9, or another
+    host), and its curves were read out of order. Here the killed run's file is renamed to sort after anything
+    named now; the resumed run's file must still come last."""
+    expected, expected_scalars = uninterrupted("sac", False)
+    with monkeypatch.context() as patch:
+        kill_at(patch, 141)
+        with pytest.raises(Killed):
+            cs.train(cs.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
+    record.OPEN_WRITERS.clear()
+    run_dir = only_run_dir(tmp_path)
+    [killed] = [name for name in os.listdir(run_dir) if name.startswith("events.out.tfevents.")]
+    os.rename(os.path.join(run_dir, killed),
+              os.path.join(run_dir, f"events.out.tfevents.{int(time.time()) + 1:010d}.zzzz.1.9"))
+    assert_identical(expected, final_state(resume(cs, run_dir), "sac"))
+    scalars = read_scalars(run_dir)
+    for tag in ("eval/episodic_return", "losses/qf1_loss"):
+        assert scalars[tag] == expected_scalars[tag], tag
 
 
 def test_replay_files_round_trip_a_wrapped_buffer(tmp_path):
