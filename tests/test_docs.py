@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-README_MAX_LINES = 250
+README_MAX_LINES = 120
 TRAINING_SCRIPTS = ("cascade_ppo_continuous.py", "ppo_baseline.py", "cascade_ppo_discrete.py",
                     "ppo_baseline_discrete.py", "cascade_sac.py", "cascade_ddpg.py")
 TOOL_FOLDERS = ("", "plots", "benchmarks", "tests")
