@@ -162,6 +162,16 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("cascade_ddpg", "cascade_ddpg.py", "--n 6 --k 1000000"),
         ("ddpg", "cascade_ddpg.py", "--n 1 --k 6000000 --hidden-size 64"),
     ]),
+    "ddpg": ("Fig. 15 as results/ runs it: Cascade-DDPG vs DDPG (6M steps, eval every 50k); run with --envs Hopper-v4 "
+             "Walker2d-v4", [
+        ("cascade_ddpg", "cascade_ddpg.py", "--n 6 --k 1000000 --eval-every 50000"),
+        ("ddpg", "cascade_ddpg.py", "--n 1 --k 6000000 --hidden-size 64 --eval-every 50000"),
+    ]),
+    "sac": ("Fig. 14 as results/ runs it: Cascade-SAC vs SAC (2M steps, eval every 50k); run with --envs Hopper-v4 "
+            "HalfCheetah-v4", [
+        ("cascade_sac", "cascade_sac.py", "--n 4 --k 500000 --eval-every 50000"),
+        ("sac", "cascade_sac.py", "--n 1 --k 2000000 --hidden-size 256 --eval-every 50000"),
+    ]),
 }
 BUDGET_FLAGS = ("--k", "--total-timesteps", "--cycle-steps")
 MIN_BUDGET = 2048  # one PPO rollout: a scaled budget (or checkpoint cadence) never goes below it

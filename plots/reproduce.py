@@ -15,7 +15,7 @@ evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
   the standard Cascade runs of the same envs and seeds, and a section of `summary.md` with each variant's final score and the paper's statement;
   from the fallback-init runs of Fig. 11 also the paper's Fig. 6 and 7 and Table 1 for each initial fallback
   (`fig6_fig7_fallback_init_product.*`, `_per_net.*`, `_tables.md`);
-- for the other scripts, with exported runs of `python sweep.py --preset discrete` or `--preset sac-ddpg`: Fig. 16
+- for the other scripts, with exported runs of `python sweep.py --preset discrete`, `--preset sac` or `--preset ddpg`: Fig. 16
   (discrete Cascade against discrete PPO), Fig. 14 (Cascade-SAC against SAC) and Fig. 15 (Cascade-DDPG against
   DDPG), drawn and summarized as the ablations are, on the envs with runs.
 
@@ -78,7 +78,7 @@ ABLATIONS = (
      ("cascade_tiny_k500k=16 nets of one hidden unit, a new one every 0.5M", "cascade_tiny_k1M=every 1M"),
      "the ensemble's performance increases with each added base net, even when weak nets are added in large "
      "numbers (the paper's abstract; runs: `sweep.py --preset tiny`)", None),
-    # the other three scripts (Appendix H and I; runs: `sweep.py --preset discrete` and `--preset sac-ddpg`)
+    # the other three scripts (Appendix H and I; runs: `sweep.py --preset discrete`, `sac` and `ddpg`)
     ("fig16_discrete", "Fig. 16", ("cascade_discrete", "ppo_discrete"),
      ("cascade_discrete=Cascade, discrete actions", "ppo_discrete=discrete PPO"),
      "over 10M steps on the discretized envs Cascade ends slightly ahead of discrete PPO on Walker2d and Hopper and "
