@@ -96,6 +96,24 @@ class Args:
 # ----------------------------------------------------------------------------------------------
 CASCADE = "cascade_ppo_continuous.py"
 PPO = "ppo_baseline.py"
+# Fig. 14 and 15 as the paper's code ran them (the scripts' defaults are its code where its Appendix H is silent or
+# differs: alpha fixed at 0.2, 16-16 tanh DDPG nets with a 64-64 tanh critic and annealed LR, a restart (random
+# warm-up, fresh targets) with each net, +-10 clipping)
+SAC_RUNS = [
+    ("cascade_sac", "cascade_sac.py", "--n 4 --k 500000"),
+    ("sac", "cascade_sac.py", "--n 1 --k 2000000 --hidden-size 256"),
+]
+DDPG_RUNS = [
+    ("cascade_ddpg", "cascade_ddpg.py", "--n 6 --k 1000000"),
+    ("ddpg", "cascade_ddpg.py", "--n 1 --k 6000000 --hidden-size 64"),
+]
+
+
+def every_50k(entries: list[tuple[str, str, str]]) -> list[tuple[str, str, str]]:
+    """The runs evaluated every 50k steps, as results/ runs them."""
+    return [(label, script, f"{flags} --eval-every 50000") for label, script, flags in entries]
+
+
 PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     "standard": ("Fig. 2, 9: standard Cascade vs PPO (6M steps)", [
         ("cascade", CASCADE, "--n 6 --k 1000000"),
@@ -106,20 +124,18 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("ppo", PPO, "--total-timesteps 6000000 --eval-every 50000"),
     ]),
     "ablations": ("Fig. 3, 4, 5, 10, 11, 12, 13 as results/ runs them (eval every 50k; standard Cascade is `reproduce`'s); "
-                  "run with --envs Ant-v4 Walker2d-v4", [
-        (label, script, f"{flags} --eval-every 50000") for label, script, flags in (
-            ("ppo_h16_cyclic", PPO, "--total-timesteps 6000000 --hidden-size 16 --lr-schedule cyclic --cycle-steps 1000000"),
-            ("cascade_frozen", CASCADE, "--n 6 --k 1000000 --freeze-previous"),
-            ("cascade_start_full", CASCADE, "--n 6 --k 1000000 --start-full"),
-            ("cascade_fallback0.05", CASCADE, "--n 6 --k 1000000 --fallback-init 0.05"),
-            ("cascade_fallback0.9", CASCADE, "--n 6 --k 1000000 --fallback-init 0.9"),
-            ("cascade_n2", CASCADE, "--n 2 --k 3000000"),
-            ("cascade_n4", CASCADE, "--n 4 --k 1500000"),
-            ("cascade_global_lr", CASCADE, "--n 6 --k 1000000 --lr-schedule global"),
-            ("cascade_nonorm", CASCADE, "--n 6 --k 1000000 --no-normalize"),
-            ("cascade_frozen_nonorm", CASCADE, "--n 6 --k 1000000 --freeze-previous --no-normalize"),
-        )
-    ]),
+                  "run with --envs Ant-v4 Walker2d-v4", every_50k([
+        ("ppo_h16_cyclic", PPO, "--total-timesteps 6000000 --hidden-size 16 --lr-schedule cyclic --cycle-steps 1000000"),
+        ("cascade_frozen", CASCADE, "--n 6 --k 1000000 --freeze-previous"),
+        ("cascade_start_full", CASCADE, "--n 6 --k 1000000 --start-full"),
+        ("cascade_fallback0.05", CASCADE, "--n 6 --k 1000000 --fallback-init 0.05"),
+        ("cascade_fallback0.9", CASCADE, "--n 6 --k 1000000 --fallback-init 0.9"),
+        ("cascade_n2", CASCADE, "--n 2 --k 3000000"),
+        ("cascade_n4", CASCADE, "--n 4 --k 1500000"),
+        ("cascade_global_lr", CASCADE, "--n 6 --k 1000000 --lr-schedule global"),
+        ("cascade_nonorm", CASCADE, "--n 6 --k 1000000 --no-normalize"),
+        ("cascade_frozen_nonorm", CASCADE, "--n 6 --k 1000000 --freeze-previous --no-normalize"),
+    ])),
     "baselines": ("Fig. 3, 9: PPO over 2M..6M steps, and one 16-wide net with a cyclic LR (a fresh Adam each cycle, the paper's code)", [
         *[(f"ppo_{m}M", PPO, f"--total-timesteps {m}000000") for m in range(2, 7)],
         ("ppo_h16_cyclic", PPO, "--total-timesteps 6000000 --hidden-size 16 --lr-schedule cyclic --cycle-steps 1000000"),
@@ -153,25 +169,12 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
         ("cascade_discrete", "cascade_ppo_discrete.py", "--n 10 --k 1000000 --eval-every 50000"),
         ("ppo_discrete", "ppo_baseline_discrete.py", "--total-timesteps 10000000 --eval-every 50000"),
     ]),
-    # the SAC/DDPG scripts' defaults are the paper's code where its Appendix H is silent or differs: alpha fixed at
-    # 0.2, 16-16 tanh DDPG nets with a 64-64 tanh critic and annealed LR, a restart (random warm-up, fresh targets)
-    # with each net, +-10 clipping
-    "sac-ddpg": ("Fig. 14, 15: Cascade with SAC (2M) and DDPG (6M) vs their baselines, as the paper's code ran them", [
-        ("cascade_sac", "cascade_sac.py", "--n 4 --k 500000"),
-        ("sac", "cascade_sac.py", "--n 1 --k 2000000 --hidden-size 256"),
-        ("cascade_ddpg", "cascade_ddpg.py", "--n 6 --k 1000000"),
-        ("ddpg", "cascade_ddpg.py", "--n 1 --k 6000000 --hidden-size 64"),
-    ]),
+    "sac-ddpg": ("Fig. 14, 15: Cascade with SAC (2M) and DDPG (6M) vs their baselines, as the paper's code ran them",
+                 [*SAC_RUNS, *DDPG_RUNS]),
     "ddpg": ("Fig. 15 as results/ runs it: Cascade-DDPG vs DDPG (6M steps, eval every 50k); run with --envs Hopper-v4 "
-             "Walker2d-v4", [
-        ("cascade_ddpg", "cascade_ddpg.py", "--n 6 --k 1000000 --eval-every 50000"),
-        ("ddpg", "cascade_ddpg.py", "--n 1 --k 6000000 --hidden-size 64 --eval-every 50000"),
-    ]),
+             "Walker2d-v4", every_50k(DDPG_RUNS)),
     "sac": ("Fig. 14 as results/ runs it: Cascade-SAC vs SAC (2M steps, eval every 50k); run with --envs Hopper-v4 "
-            "HalfCheetah-v4", [
-        ("cascade_sac", "cascade_sac.py", "--n 4 --k 500000 --eval-every 50000"),
-        ("sac", "cascade_sac.py", "--n 1 --k 2000000 --hidden-size 256 --eval-every 50000"),
-    ]),
+            "HalfCheetah-v4", every_50k(SAC_RUNS)),
 }
 BUDGET_FLAGS = ("--k", "--total-timesteps", "--cycle-steps")
 MIN_BUDGET = 2048  # one PPO rollout: a scaled budget (or checkpoint cadence) never goes below it

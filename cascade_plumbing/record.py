@@ -29,9 +29,8 @@ def wait_to_name_events_after(run_dir: str) -> None:
     TensorBoard reads a folder's events files in name order, `events.out.tfevents.<second>.<host>.<pid>.<count>`:
     a resume within the second the killed run's file was named can sort before it (count 10 before 9), and its
     curves are then read out of order."""
-    prefix = "events.out.tfevents."
-    seconds = [int(name.split(".")[3]) for name in os.listdir(run_dir)
-               if name.startswith(prefix) and name.split(".")[3].isdigit()]
+    named = [name.split(".")[3] for name in os.listdir(run_dir) if name.startswith("events.out.tfevents.")]
+    seconds = [int(second) for second in named if second.isdigit()]
     while seconds and time.time() < max(seconds) + 1:
         time.sleep(0.02)
 
