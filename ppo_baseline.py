@@ -507,7 +507,7 @@ class RunLog(RunRecord):
             updates = args.total_timesteps // batch_size
             print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
                   f"the run does {updates} updates = {updates * batch_size} steps")
-        super().__init__(args, checkpoint, envs, total_steps, iteration_files=False)  # a PPO run has no iterations
+        super().__init__(args, checkpoint, envs, total_steps, at_iteration_end=False, iteration_files=False)  # no iterations
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self.runner = EvaluationRunner(
             partial(Evaluator, args.env_id, args.eval_episodes, args.seed),

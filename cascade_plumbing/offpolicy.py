@@ -177,7 +177,10 @@ class OffPolicyRun(RunRecord):
                  rates: str):
         """`envs`: the training env, one env with SAME_STEP autoreset; `rates`: the script's learning-rate flags,
         named by the non-finite guard."""
-        super().__init__(args, checkpoint, envs, total_steps=args.n * args.k)
+        # a checkpoint from the middle of an iteration is not that iteration's end: its iteration_<i>.pt is not
+        # rebuilt from it (the run writes that file when it gets there)
+        super().__init__(args, checkpoint, envs, total_steps=args.n * args.k,
+                         at_iteration_end=checkpoint is not None and checkpoint["steps_done"] == args.k)
         self.checkpoint_format, self.rates = checkpoint_format, rates
         self.obs_dim = int(np.prod(envs.single_observation_space.shape))
         self.act_dim = int(np.prod(envs.single_action_space.shape))

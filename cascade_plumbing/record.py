@@ -38,12 +38,13 @@ def wait_to_name_events_after(run_dir: str) -> None:
 class RunRecord:
     """A run's folder `<track_dir>/<run_name>` and everything written there, for a new run or a resumed one
     (`checkpoint`, whose folder it continues). `envs` are the training envs (their RunState wrappers).
-    `at_iteration_end`: whether `checkpoint` was written at the end of an iteration; `iteration_files`: False for
-    a run that keeps no iteration_<i>.pt (nothing to repair on resume); `progress_line`: False for a run that
-    prints no progress line (its messages still go through `progress.message`)."""
+    `at_iteration_end`: whether `checkpoint` was written at the end of an iteration (no default: a mid-iteration
+    checkpoint taken for an iteration's end would be copied to its iteration_<i>.pt on resume); `iteration_files`:
+    False for a run that keeps no iteration_<i>.pt (nothing to repair on resume); `progress_line`: False for a run
+    that prints no progress line (its messages still go through `progress.message`)."""
 
-    def __init__(self, args: Any, checkpoint: dict | None, envs: gym.vector.VectorEnv, total_steps: int,
-                 at_iteration_end: bool = True, iteration_files: bool = True, progress_line: bool = True):
+    def __init__(self, args: Any, checkpoint: dict | None, envs: gym.vector.VectorEnv, total_steps: int, *,
+                 at_iteration_end: bool, iteration_files: bool = True, progress_line: bool = True):
         from torch.utils.tensorboard import SummaryWriter
 
         self.args, self.envs = args, envs

@@ -264,3 +264,50 @@ def test_sigkill_then_resume_on_the_command_line(algo, tmp_path):
     for name in NETS[algo]:
         for key, value in a[name].items():
             torch.testing.assert_close(b[name][key], value, rtol=0, atol=0, msg=f"{name}.{key}")
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+def test_a_resume_from_the_middle_of_an_iteration_writes_no_iteration_file_for_it(algo, tmp_path, monkeypatch,
+                                                                                  capsys):
+    """iteration_<i>.pt is the state at the end of iteration i (plots/analyze.py reads it as that). A run killed in
+    the middle of iteration 2 and resumed must not "rebuild" iteration_2.pt from its mid-iteration checkpoint
+    (before the fix, every off-policy resume did, naming a state of step 440 the end of iteration 2); a run killed
+    right after an iteration's end, its iteration file lost, does get it back from the checkpoint."""
+    mod = SCRIPTS[algo]
+    args = mod.Args(**TINY, buffer_size=250, track_dir=str(tmp_path))
+    with monkeypatch.context() as patch:
+        kill_at(patch, 450)
+        with pytest.raises(Killed):
+            mod.train(args)
+    record.OPEN_WRITERS.clear()
+    run_dir = only_run_dir(tmp_path)
+    first = open(os.path.join(run_dir, "iteration_1.pt"), "rb").read()
+    checkpoint = mod.load_checkpoint(run_dir)
+    assert (checkpoint["global_step"], checkpoint["iteration"], checkpoint["steps_done"]) == (440, 2, 140)
+    with monkeypatch.context() as patch:  # the resume is stopped again right after its first step
+        kill_at(patch, 441)
+        with pytest.raises(Killed):
+            mod.train(mod.Args(**checkpoint["args"]), checkpoint)
+    record.OPEN_WRITERS.clear()
+    assert not os.path.exists(os.path.join(run_dir, "iteration_2.pt"))
+    assert open(os.path.join(run_dir, "iteration_1.pt"), "rb").read() == first  # the end of iteration 1, untouched
+    assert "rebuilt" not in capsys.readouterr().out
+
+    # killed right after the end of iteration 1, and its iteration_1.pt lost: rebuilt from the checkpoint
+    shutil.rmtree(run_dir)
+    with monkeypatch.context() as patch:
+        kill_at(patch, 301)
+        with pytest.raises(Killed):
+            mod.train(args)
+    record.OPEN_WRITERS.clear()
+    run_dir = only_run_dir(tmp_path)
+    os.remove(os.path.join(run_dir, "iteration_1.pt"))
+    checkpoint = mod.load_checkpoint(run_dir)
+    assert (checkpoint["iteration"], checkpoint["steps_done"]) == (1, 300)
+    with monkeypatch.context() as patch:
+        kill_at(patch, 301)
+        with pytest.raises(Killed):
+            mod.train(mod.Args(**checkpoint["args"]), checkpoint)
+    record.OPEN_WRITERS.clear()
+    assert mod.load_checkpoint(os.path.join(run_dir, "iteration_1.pt"))["global_step"] == 300
+    assert "rebuilt" in capsys.readouterr().out
