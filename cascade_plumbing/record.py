@@ -19,7 +19,7 @@ import torch.nn as nn
 from .checkpoints import CHECKPOINT_NAME, atomic_copy, non_finite_advice, repair_iteration_files, save_checkpoint
 from .envs import make_render_env
 from .errors import fail
-from .runs import OPEN_WRITERS, rng_states, run_name, set_rng_states
+from .runs import OPEN_WRITERS, RUN_DIR, claim_run_dir, lock_run_dir, rng_states, set_rng_states, unlock_run_dir
 from .tracking import VIDEO_ROOT, Progress, finish_wandb, finished_videos, log_new_videos, start_wandb
 
 
@@ -51,9 +51,12 @@ class RunRecord:
         if args.capture_video:  # here, once the --num-envs workers exist: forked after a render, they hang
             make_render_env(args.env_id).close()  # no OpenGL backend: one line now, not a traceback later
         if checkpoint is None:
-            self.run_dir = os.path.join(args.track_dir, run_name(args))
+            self.run_dir = claim_run_dir(args)
         else:
             self.run_dir = os.path.dirname(checkpoint["path"])
+        lock_run_dir(self.run_dir)  # before anything in the folder changes
+        RUN_DIR[:] = [self.run_dir]
+        if checkpoint is not None:
             # without iteration files: as a run with none finished (only an interrupted write is removed)
             repair_iteration_files(self.run_dir, checkpoint if iteration_files else {**checkpoint, "iteration": 0},
                                    at_iteration_end)
@@ -162,6 +165,7 @@ class RunRecord:
 
     def close(self, global_step: int) -> None:
         self.writer.close()
+        unlock_run_dir(self.run_dir)
         if self.args.track:
             log_new_videos(self.video_folder, self.videos_sent, global_step)
             finish_wandb(exit_code=0)

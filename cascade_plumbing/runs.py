@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import glob
+import fcntl
 import os
 import random
 import shutil
@@ -152,9 +152,7 @@ def this_run_dir(args: Any, checkpoint: dict | None, started: float) -> str | No
     `started` (None if it has made none yet)."""
     if checkpoint is not None:
         return os.path.dirname(checkpoint["path"])
-    pattern = os.path.join(glob.escape(args.track_dir), f"{glob.escape(args.env_id)}__{glob.escape(args.exp_name)}__{args.seed}__*")
-    mine = [d for d in glob.glob(pattern) if d.rsplit("__", 1)[1].isdigit() and int(d.rsplit("__", 1)[1]) >= int(started)]
-    return max(mine, key=os.path.getmtime) if mine else None
+    return RUN_DIR[-1] if RUN_DIR else None
 
 
 def remove_unresumable_run(run_dir: str) -> bool:
@@ -231,9 +229,61 @@ def only_mine(run_dir: str) -> bool:
     return True
 
 
-def run_name(args: Any) -> str:
+def run_name(args: Any, stamp: int | None = None) -> str:
     """CleanRL's run name, `<env_id>__<exp_name>__<seed>__<unix time>`: the run's folder under --track-dir."""
-    return f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    return f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time()) if stamp is None else stamp}"
+
+
+RUN_DIR: list[str] = []  # the folder the current run of this process trains in (for its stop line)
+RUN_LOCKS: dict[str, int] = {}  # run folder -> descriptor of its run.lock, held by this process
+
+
+def claim_run_dir(args: Any) -> str:
+    """A new run's folder under --track-dir, made here, never one that exists: two runs of the same name started
+    in the same second (a flag sweep started with `&`) would otherwise write into one folder, each overwriting the
+    other's checkpoints. The second takes the next free second for its name's <unix time>."""
+    os.makedirs(args.track_dir, exist_ok=True)
+    stamp = int(time.time())
+    while True:
+        path = os.path.join(args.track_dir, run_name(args, stamp))
+        try:
+            os.mkdir(path)
+            return path
+        except FileExistsError:
+            stamp += 1
+
+
+def lock_run_dir(run_dir: str) -> None:
+    """Hold an exclusive lock on `<run_dir>/run.lock` (which holds the pid) while this process trains there: a second
+    process there (a --resume of a run that is still going, a requeued job) would overwrite its checkpoints and
+    replay rows. A POSIX lock: held by this process alone (not its env workers) and ended by its exit, however it
+    ends; a second lock by the same process (a resume in a notebook after a stopped train()) is its own. Refused in
+    one line. A filesystem without locks is used unlocked."""
+    key = os.path.realpath(run_dir)
+    if key in RUN_LOCKS:
+        return
+    fd = os.open(os.path.join(run_dir, "run.lock"), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        if exc.errno not in (errno.EACCES, errno.EAGAIN):
+            os.close(fd)  # (no locks on this filesystem)
+            return
+        holder = os.read(fd, 64).decode(errors="replace").strip()
+        os.close(fd)
+        who = f"pid {holder}" if holder.isdigit() else "another process"
+        stop = f"stop it (kill {holder})" if holder.isdigit() else "stop it"
+        fail(f"{run_dir} is in use: a run is training there ({who}); wait for it to end, or {stop} and resume then")
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    RUN_LOCKS[key] = fd
+
+
+def unlock_run_dir(run_dir: str) -> None:
+    """Release the lock of `lock_run_dir` (at the run's end)."""
+    fd = RUN_LOCKS.pop(os.path.realpath(run_dir), None)
+    if fd is not None:
+        os.close(fd)
 
 
 def script_name(file: str) -> str:
@@ -285,6 +335,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     if not getattr(threading.excepthook, "quiet_writer_threads", False):
         threading.excepthook = quiet_writer_threads(threading.excepthook)
     started = time.time()
+    RUN_DIR.clear()
     try:
         train(args, checkpoint)
     except BaseException as exc:

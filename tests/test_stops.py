@@ -11,7 +11,7 @@ import time
 import pytest
 
 import sweep
-from helpers import ROOT, cli_in_process, ctrl_c_reaches_child, only_run_dir, read_scalars, run_script
+from helpers import ROOT, cli_in_process, ctrl_c_reaches_child, error_line, only_run_dir, read_scalars, run_script
 
 FLAGSHIP = "cascade_ppo_continuous.py"
 BASELINE = "ppo_baseline.py"
@@ -255,3 +255,44 @@ def test_the_final_evaluation_is_logged_before_the_final_checkpoint(tmp_path, mo
                                       script == FLAGSHIP else "--quiet", "--track-dir", str(tmp_path)])
     module.main()
     assert seen[-1] == (2048, EVAL_STEPS)
+
+
+def test_runs_of_one_name_started_in_the_same_second_get_folders_of_their_own(tmp_path, capsys):
+    """A flag sweep started with `&` starts runs of one name (env, --exp-name, seed) in the same second: each gets a
+    folder of its own (the next free second in its name), never one that exists. Before, the second run wrote into
+    the first one's folder and the two overwrote each other's checkpoints."""
+    now = int(time.time())
+    taken = [tmp_path / f"InvertedPendulum-v4__cascade_ppo_continuous__1__{stamp}" for stamp in range(now, now + 4)]
+    for folder in taken:  # the folders of runs started in this second and the next three
+        folder.mkdir()
+        (folder / "theirs.txt").write_text("another run")
+    code, _, message = cli_in_process(capsys, FLAGSHIP, *TINY[FLAGSHIP], "--eval-every", "0",
+                                      "--track-dir", tmp_path)
+    assert code == 0, message
+    new = [d for d in os.listdir(tmp_path) if tmp_path / d not in taken]
+    assert len(new) == 1 and int(new[0].rsplit("__", 1)[1]) >= now + 4, new
+    assert os.path.exists(tmp_path / new[0] / "checkpoint.pt")
+    for folder in taken:
+        assert os.listdir(folder) == ["theirs.txt"], os.listdir(folder)
+
+
+def test_a_resume_of_a_run_that_is_still_training_is_refused(tmp_path):
+    """`--resume` of a run folder another process still trains in (a requeued job, a second terminal) would
+    overwrite that run's checkpoints and logs: it is refused in one line naming the process, and the running run's
+    checkpoint is untouched. Once that run has stopped, the folder is free again."""
+    proc = start(FLAGSHIP, "--n", "1", "--k", "300000", "--checkpoint-every", "2048", "--eval-every", "0", *ENV,
+                 *COMMON[:-5], "--quiet", "--track-dir", tmp_path)
+    try:
+        checkpoint = wait_for(str(tmp_path / "*" / "checkpoint.pt"), proc)
+        run_dir = os.path.dirname(checkpoint)
+        resumed = run_script(FLAGSHIP, "--resume", run_dir, timeout=900)
+        assert resumed.returncode != 0 and proc.poll() is None, resumed.stderr[-2000:]
+        assert error_line(resumed) == (f"error: {run_dir} is in use: a run is training there (pid {proc.pid}); wait "
+                                       f"for it to end, or stop it (kill {proc.pid}) and resume then")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        code, _, err = finish(proc, timeout=120)
+    assert code == 128 + signal.SIGINT, err[-2000:]
+    from cascade_plumbing.runs import lock_run_dir, unlock_run_dir
+    lock_run_dir(run_dir)  # free: the stopped run's lock ended with it
+    unlock_run_dir(run_dir)
