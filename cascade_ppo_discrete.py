@@ -81,7 +81,7 @@ class Args:
     wandb_group: str | None = None
     """the W&B group of the run (with --track; sweep.py gives the runs of one sweep one group)"""
     capture_video: bool = False
-    """mp4s of training episodes 0, 1, 8, 27, ..., 1000, 2000, ... of the first env in videos/<run_name>/ (to W&B with --track). MuJoCo needs MUJOCO_GL=egl or osmesa"""
+    """mp4s of training episodes 0, 1, 8, 27, ..., 1000, 2000, ... of the first env in videos/<run_name>/ (to W&B with --track); with --evaluate: one episode next to the checkpoint. MuJoCo needs MUJOCO_GL=egl or osmesa"""
 
     # Environment
     env_id: str = "Hopper-v4"

@@ -7,6 +7,7 @@ run (on evaluation.EvaluationEnvs)."""
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any
@@ -17,11 +18,10 @@ import torch
 
 from . import envs as plumbing_envs
 from .checkpoints import non_finite_advice
-from .envs import OBS_CLIP, check_env_id, obs_statistics
+from .envs import OBS_CLIP, obs_statistics, probe_spaces
 from .errors import fail
-from .evaluation import EvaluationEnvs
+from .evaluation import EvaluationEnvs, open_saved_model
 from .record import RunRecord
-from .runs import set_threads
 
 MAX_DISCRETIZED_DIMS = 10  # 2^10 = 1024 actions; Humanoid's 17 dims (131072 actions) are out of scope
 
@@ -98,10 +98,7 @@ def normalize_obs(obs: np.ndarray, stats: tuple[np.ndarray, np.ndarray] | None, 
 def resolve_env(args: Any, continuous_script: str) -> tuple[bool, bool]:
     """Probe --env-id and refuse what a discrete script cannot run, in one line (`continuous_script`: the one to
     use instead for a Box task with --discretize off). Returns (discretize, normalize) as they apply to this env."""
-    check_env_id(args.env_id, "CartPole-v1, Hopper-v4")
-    probe = gym.make(args.env_id)
-    action_space, observation_space = probe.action_space, probe.observation_space
-    probe.close()
+    action_space, observation_space = probe_spaces(args.env_id, "CartPole-v1, Hopper-v4")
     if not isinstance(observation_space, gym.spaces.Box):
         fail(f"{args.env_id} has a {type(observation_space).__name__} observation space; this script needs a Box one")
     if isinstance(action_space, gym.spaces.Discrete):
@@ -188,8 +185,8 @@ class EvaluationEpisodes(EvaluationEnvs):
     """`episodes` episodes run side by side on envs of their own (never the training envs or RNG), as the paper
     evaluates (Appendix B.5): the policy frozen with its observation statistics, the undiscounted raw return."""
 
-    def __init__(self, env_id: str, episodes: int, seed: int, discretize: bool):
-        super().__init__(env_id, episodes, seed, wrap=DiscretizeAction if discretize else None)
+    def __init__(self, env_id: str, episodes: int, seed: int, discretize: bool, render: bool = False):
+        super().__init__(env_id, episodes, seed, render=render, wrap=DiscretizeAction if discretize else None)
         self.discretize = discretize
 
     @torch.inference_mode()
@@ -222,11 +219,9 @@ class EvaluationEpisodes(EvaluationEnvs):
 def evaluate_saved_model(args: Any, load_checkpoint: Callable[[str], dict],
                          evaluate: Callable[[dict, EvaluationEpisodes], tuple[np.ndarray, str]]) -> np.ndarray:
     """--evaluate: `evaluate(checkpoint, episodes)` runs the saved policy for --eval-episodes episodes and returns
-    their returns and what was evaluated (e.g. "PPO"); one line says how it did. Returns the episodes' returns."""
-    if args.eval_episodes < 1:
-        fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
-    checkpoint = load_checkpoint(args.evaluate)
-    set_threads(args.torch_threads)
+    their returns and what was evaluated (e.g. "PPO"); one line says how it did. Returns the episodes' returns.
+    With --capture-video, an mp4 of one more episode beside the checkpoint."""
+    checkpoint = open_saved_model(args, load_checkpoint)
     env_id = checkpoint["args"]["env_id"]
     episodes = EvaluationEpisodes(env_id, args.eval_episodes, args.seed, checkpoint["discretize"])
     returns, what = evaluate(checkpoint, episodes)
@@ -234,4 +229,11 @@ def evaluate_saved_model(args: Any, load_checkpoint: Callable[[str], dict],
     mode = "deterministic" if args.deterministic else "stochastic"
     print(f"{env_id}, {what}, step {checkpoint['global_step']}: "
           f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
+    if args.capture_video:
+        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
+        video = EvaluationEpisodes(env_id, 1, args.seed, checkpoint["discretize"], render=True)
+        video_returns, _ = evaluate(checkpoint, video)
+        video.write_video(path)
+        video.close()
+        print(f"video of one episode (return {video_returns[0]:.1f}): {path}")
     return returns

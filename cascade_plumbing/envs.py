@@ -36,6 +36,21 @@ def check_env_id(env_id: str, examples: str = "Ant-v4, Hopper-v5") -> None:
         fail(f"unknown env id '{env_id}'.{hint} (see gymnasium's registry, e.g. {examples})")
 
 
+def probe_spaces(env_id: str, examples: str = "Ant-v4, Hopper-v5") -> tuple[gym.Space, gym.Space]:
+    """--env-id's (action space, observation space), from one env made and closed; one line if the id is unknown
+    or the env cannot be made here (a registered env whose package is missing, e.g. Box2D for LunarLander)."""
+    check_env_id(env_id, examples)
+    try:
+        probe = gym.make(env_id)
+    except (gym.error.DependencyNotInstalled, ImportError) as exc:
+        first_line = (str(exc).splitlines() or [""])[0][:200]
+        fail(f"cannot make {env_id}: {first_line or type(exc).__name__}; install what it needs, or pick another "
+             "--env-id")
+    spaces = probe.action_space, probe.observation_space
+    probe.close()
+    return spaces
+
+
 def find_wrapper(env: gym.Env, wrapper_type: type) -> gym.Wrapper | None:
     while isinstance(env, gym.Wrapper):
         if isinstance(env, wrapper_type):

@@ -10,6 +10,7 @@ script's."""
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -21,13 +22,12 @@ import torch
 import torch.nn as nn
 
 from .checkpoints import non_finite_advice
-from .envs import check_env_id
+from .envs import probe_spaces
 from .errors import fail
-from .evaluation import EvaluationEnvs
+from .evaluation import EvaluationEnvs, open_saved_model
 from .fast import plain_fused_adam
 from .record import RunRecord
 from .replay import ReplayBuffer, ReplayFiles, available_memory, buffer_capacity, store_transition
-from .runs import set_threads
 from .tracking import log_new_videos
 
 
@@ -83,10 +83,7 @@ def check_replay_settings(args: Any, bounds_needed_because: str) -> None:
         fail(f"--tau must lie in (0, 1] (got {args.tau})")
     if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
         fail("--eval-every must be >= 0 and --eval-episodes >= 1")
-    check_env_id(args.env_id, "Hopper-v4, Ant-v5")
-    probe = gym.make(args.env_id)
-    action_space, observation_space = probe.action_space, probe.observation_space
-    probe.close()
+    action_space, observation_space = probe_spaces(args.env_id, "Hopper-v4, Ant-v5")
     if not isinstance(action_space, gym.spaces.Box):
         fail(f"{args.env_id} has a {type(action_space).__name__} action space; this script needs a Box "
              "(continuous) one: use cascade_ppo_discrete.py")
@@ -112,8 +109,8 @@ class Evaluator(EvaluationEnvs):
     """Runs `episodes` episodes side by side on its own envs (`EvaluationEnvs`); never touches the training envs
     or RNG. `obs_clip`: the clipping of the observations the policy sees, as in training (0: none)."""
 
-    def __init__(self, env_id: str, episodes: int, seed: int, obs_clip: float):
-        super().__init__(env_id, episodes, seed)
+    def __init__(self, env_id: str, episodes: int, seed: int, obs_clip: float, render: bool = False):
+        super().__init__(env_id, episodes, seed, render=render)
         self.obs_clip = obs_clip
 
     @torch.inference_mode()
@@ -140,12 +137,9 @@ def evaluate_saved_policy(args: Any, load_checkpoint: Callable[[str], dict],
                           policies: Callable[[dict], tuple[Policy, list[Policy]]], mode: str) -> dict:
     """--evaluate: the policy of the saved model at `args.evaluate` (and with --members each net alone:
     `policies(checkpoint)` gives both) on --eval-episodes fresh episodes; prints the returns and gives them back.
-    `mode` names how actions are chosen."""
-    if args.eval_episodes < 1:
-        fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
-    checkpoint = load_checkpoint(args.evaluate)
+    `mode` names how actions are chosen. With --capture-video, an mp4 of one more episode beside the checkpoint."""
+    checkpoint = open_saved_model(args, load_checkpoint)
     saved = checkpoint["args"]
-    set_threads(args.torch_threads)
     full, members = policies(checkpoint)
     evaluator = Evaluator(saved["env_id"], args.eval_episodes, args.seed, saved["obs_reward_clip"])
     returns, _ = evaluator(full)
@@ -158,6 +152,13 @@ def evaluate_saved_policy(args: Any, load_checkpoint: Callable[[str], dict],
             result["members"].append(member_returns)
             print(f"  net {net + 1} alone: {member_returns.mean():.1f} ± {member_returns.std():.1f}")
     evaluator.close()
+    if args.capture_video:
+        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
+        video = Evaluator(saved["env_id"], 1, args.seed, saved["obs_reward_clip"], render=True)
+        video_returns, _ = video(full)
+        video.write_video(path)
+        video.close()
+        print(f"video of one episode (return {video_returns[0]:.1f}): {path}")
     return result
 
 

@@ -13,7 +13,7 @@ import torch
 import torch.nn as nn
 
 from . import envs as envs_module
-from .envs import OBS_CLIP, check_env_id
+from .envs import OBS_CLIP, probe_spaces
 from .errors import fail
 
 
@@ -59,10 +59,7 @@ def check_ppo_settings(args: Any) -> int:
 def check_box_env(env_id: str) -> None:
     """--env-id is registered and acts in a Box (continuous) action space; otherwise one line (naming the discrete
     script for a discrete env)."""
-    check_env_id(env_id)
-    probe = gym.make(env_id)
-    action_space = probe.action_space
-    probe.close()
+    action_space, _ = probe_spaces(env_id)
     if not isinstance(action_space, gym.spaces.Box):
         fail(f"{env_id} has a {type(action_space).__name__} action space; this script needs a Box "
              "(continuous) one: use cascade_ppo_discrete.py")

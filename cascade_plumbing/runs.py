@@ -49,6 +49,8 @@ def set_threads(threads: int) -> None:
     product (the SAC fast path's), so one run would use two cores; and with torch's OpenMP threads beside its own,
     both spinning between calls, a 2-thread SAC run measured 15x slower (docs/performance.md, "SAC and DDPG"). Only OpenBLAS (what
     numpy's wheels carry): a BLAS that torch shares (a conda MKL) keeps torch's setting."""
+    if threads < 1:  # (training checks it with the other settings; --evaluate meets it here)
+        fail(f"--torch-threads must be at least 1 (got {threads})")
     torch.set_num_threads(threads)
     ThreadpoolController().select(internal_api="openblas").limit(limits=1)
 
@@ -295,8 +297,8 @@ def check_common_settings(args: Any) -> None:
     """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left);
     first every real-valued setting: finite and in its range (errors.check_ranges)."""
     check_ranges(args)
-    if args.seed < 0:
-        fail(f"--seed must be a non-negative integer (got {args.seed}); numpy and gymnasium refuse negative seeds")
+    if not 0 <= args.seed < 2**32:
+        fail(f"--seed must be a non-negative integer below 2**32 (got {args.seed}); numpy and gymnasium refuse others")
     if args.torch_threads < 1:
         fail(f"--torch-threads must be at least 1 (got {args.torch_threads})")
     if getattr(args, "checkpoint_every", 0) < 0:
@@ -304,6 +306,29 @@ def check_common_settings(args: Any) -> None:
     check_track_dir(args.track_dir)
     if args.track:
         check_wandb()
+
+
+def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], Any]) -> None:
+    """--evaluate: the saved model on the env it was trained on. Flags it would ignore are refused in one line; a
+    stop (Ctrl-C, SIGTERM) ends in one line too (exit 130 / 143): nothing of a run is at stake."""
+    if args.resume:
+        fail("--evaluate and --resume exclude each other: --evaluate runs a saved model, --resume continues its run; "
+             "pass one")
+    if "env_id" in given:
+        fail(f"--env-id has no effect with --evaluate: the saved model is evaluated on the env it was trained on "
+             f"(saved in {args.evaluate}); leave --env-id out")
+    if not 0 <= args.seed < 2**32:
+        fail(f"--seed must be a non-negative integer below 2**32 (got {args.seed}); numpy and gymnasium refuse others")
+    signal.signal(signal.SIGTERM, stop_signal)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, stop_signal)
+    try:
+        evaluate_saved(args)
+    except KeyboardInterrupt:
+        signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
+        print(f"\rstopped by {signal.Signals(signum).name}: the evaluation of {args.evaluate} was stopped before it "
+              "ended (nothing to resume: run it again)", file=sys.stderr, flush=True)
+        sys.exit(128 + signum)
 
 
 def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate_saved: Callable[[Any], Any],
@@ -315,7 +340,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     does nothing."""
     args = tyro.cli(args_type, description=description)
     if args.evaluate:
-        evaluate_saved(args)
+        evaluate_only(args, explicit_fields(args_type, sys.argv[1:]), evaluate_saved)
         return
     checkpoint = None
     if args.resume:

@@ -2,7 +2,12 @@
 (issue 18: these gave tracebacks, left run folders, or were silently accepted)."""
 
 import importlib
+import os
+import signal
+import time
+from types import SimpleNamespace
 
+import gymnasium as gym
 import pytest
 
 from helpers import error_line, error_line_in_process, run_script
@@ -106,3 +111,80 @@ def test_a_non_finite_learning_rate_on_the_command_line_is_one_line(script, tmp_
                                  "--track-dir", str(tmp_path / "runs"))
     assert line == f"error: {flag} must be a finite number (got inf)"
     assert not (tmp_path / "runs").exists()
+
+
+def missing_dependency(**kwargs):
+    raise gym.error.DependencyNotInstalled('Box2D is not installed, run `pip install "gymnasium[box2d]"`')
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_registered_env_whose_package_is_missing_is_one_line(script, tmp_path):
+    """A registered env that cannot be made here (LunarLander-v3 without Box2D, a shimmy env without shimmy) was a
+    ~45-line traceback from the env probe; now one line with gymnasium's own advice."""
+    if "MissingPackage-v0" not in gym.envs.registry:
+        gym.register(id="MissingPackage-v0", entry_point=missing_dependency)
+    module = importlib.import_module(script)
+    with pytest.raises(SystemExit) as stop:
+        module.train(module.Args(env_id="MissingPackage-v0", track_dir=str(tmp_path / "runs")))
+    text = str(stop.value)
+    assert text == ('error: cannot make MissingPackage-v0: Box2D is not installed, run `pip install "gymnasium[box2d]"`; '
+                    "install what it needs, or pick another --env-id"), text
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_seed_numpy_refuses_is_one_line(script, tmp_path):
+    """Seeds of 2**32 and more (a hash, `date +%s%N`) were a traceback from np.random.seed."""
+    module = importlib.import_module(script)
+    args = module.Args(env_id=ENV.get(script, "Hopper-v4"), track_dir=str(tmp_path / "runs"), seed=2**32)
+    with pytest.raises(SystemExit) as stop:
+        module.train(args)
+    assert str(stop.value).startswith(f"error: --seed must be a non-negative integer below 2**32 (got {2**32})")
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_evaluate_refuses_flags_it_would_ignore_in_one_line(script, tmp_path):
+    """--evaluate runs the saved model on its own env: a --env-id or --resume beside it was silently dropped (a
+    Pendulum model "evaluated" on Hopper-v4 printed Pendulum's returns), a seed numpy refuses was a traceback."""
+    saved = str(tmp_path / "run")
+    cases = [(["--env-id", "Hopper-v4"], "--env-id has no effect with --evaluate"),
+             (["--resume", saved], "--evaluate and --resume exclude each other"),
+             (["--seed", str(2**32)], "--seed must be a non-negative integer below 2**32")]
+    for flags, message in cases:
+        line = error_line_in_process(f"{script}.py", "--evaluate", saved, *flags)
+        assert line.startswith(f"error: {message}"), line
+
+
+def test_torch_threads_below_one_is_one_line_wherever_it_is_set():
+    """--evaluate sets torch's threads without the training checks: --torch-threads 0 was torch's traceback."""
+    from cascade_plumbing.runs import set_threads
+
+    with pytest.raises(SystemExit) as stop:
+        set_threads(0)
+    assert str(stop.value) == "error: --torch-threads must be at least 1 (got 0)"
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_stopped_evaluation_is_one_line(signum, capsys):
+    """Ctrl-C or SIGTERM during --evaluate was a KeyboardInterrupt traceback (or a silent death by SIGTERM): now one
+    line and exit 130 / 143, as for a stopped run."""
+    from cascade_plumbing import runs
+
+    def evaluation_stopped(args):
+        os.kill(os.getpid(), signum)
+        time.sleep(10)  # the handler interrupts this
+        raise AssertionError("the stop did not reach the evaluation")
+
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    args = SimpleNamespace(evaluate="runs/some_run", resume=None, seed=1)
+    try:
+        with pytest.raises(SystemExit) as stop:
+            runs.evaluate_only(args, set(), evaluation_stopped)
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    assert stop.value.code == 128 + signum
+    line = capsys.readouterr().err.strip("\r\n")
+    assert line == (f"stopped by {signal.Signals(signum).name}: the evaluation of runs/some_run was stopped before it "
+                    "ended (nothing to resume: run it again)"), line

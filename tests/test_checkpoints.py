@@ -265,6 +265,32 @@ def test_capture_video_writes_an_mp4_or_says_why(finished_run, tmp_path):
     assert open(video, "rb").read(12)[4:8] == b"ftyp"  # an mp4 container
 
 
+TINY_VIDEO_RUNS = {  # InvertedPendulum-v4 renders with MuJoCo's GL backends (the classic-control envs need pygame)
+    "cascade_sac": dict(n=1, k=300, learning_starts=100, batch_size=32),
+    "cascade_ddpg": dict(n=1, k=300, learning_starts=100, batch_size=32),
+    "cascade_ppo_discrete": dict(n=1, k=512, num_envs=2, num_steps=128, num_minibatches=2, update_epochs=1),
+}
+
+
+@pytest.mark.parametrize("script", list(TINY_VIDEO_RUNS))
+def test_evaluate_capture_video_writes_an_mp4_for_every_cascade_script(script, tmp_path):
+    """--evaluate --capture-video wrote an mp4 in the flagship only; the discrete, SAC and DDPG scripts ran the
+    episodes and silently wrote none."""
+    module = importlib.import_module(script)
+    result = module.train(module.Args(env_id="InvertedPendulum-v4", eval_every=0, quiet=True,
+                                      track_dir=str(tmp_path), **TINY_VIDEO_RUNS[script]))
+    proc = run_script(f"{script}.py", "--evaluate", result["run_dir"], "--eval-episodes", "1", "--capture-video",
+                      env={"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    if proc.returncode != 0:
+        line = error_line(proc)
+        assert "cannot render" in line and "MUJOCO_GL" in line
+        pytest.skip(f"no OpenGL backend here: {line}")
+    (video,) = [name for name in os.listdir(result["run_dir"]) if name.endswith(".mp4")]
+    assert proc.stdout.splitlines()[-1].endswith(os.path.join(result["run_dir"], video)), proc.stdout
+    data = open(os.path.join(result["run_dir"], video), "rb").read()
+    assert len(data) > 1000 and data[4:8] == b"ftyp"  # an mp4 container
+
+
 def test_baseline_checkpoint_resume_and_evaluate(tmp_path, capsys):
     import ppo_baseline as pb
 
