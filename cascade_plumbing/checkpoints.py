@@ -1,5 +1,6 @@
 """Checkpoints: one file holds everything a run needs to continue and to act. Every write is atomic (temp file,
-fsync, rename), so a kill or a full disk never leaves a damaged checkpoint in place of a good one."""
+fsync, rename, fsync of the folder), so a kill, a power loss or a full disk never leaves a damaged checkpoint in
+place of a good one."""
 
 from __future__ import annotations
 
@@ -18,6 +19,22 @@ from .errors import fail
 CHECKPOINT_NAME = "checkpoint.pt"
 
 
+def fsync_dir(folder: str) -> None:
+    """Make a rename or a new file in `folder` durable: a file's own fsync does not cover its directory entry, so
+    after a power loss the folder could still list the old checkpoint, or no new replay segment. Filesystems that
+    cannot fsync a folder are left as they are."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
 def save_checkpoint(path: str, payload: dict) -> None:
     """Atomic: write a temp file, fsync, then rename over the old one (which stays intact until then).
     A failed write (a full disk, most often) removes the temp file and stops the run in one line."""
@@ -30,6 +47,7 @@ def save_checkpoint(path: str, payload: dict) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+    fsync_dir(os.path.dirname(os.path.abspath(path)))
 
 
 def atomic_copy(source: str, path: str) -> None:
@@ -40,6 +58,7 @@ def atomic_copy(source: str, path: str) -> None:
         dst.flush()
         os.fsync(dst.fileno())
     os.replace(tmp, path)
+    fsync_dir(os.path.dirname(os.path.abspath(path)))
 
 
 @contextlib.contextmanager

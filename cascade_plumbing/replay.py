@@ -10,6 +10,7 @@ import zlib
 import numpy as np
 import torch
 
+from .checkpoints import fsync_dir
 from .errors import fail
 
 
@@ -116,6 +117,8 @@ class ReplayFiles:
                 finally:
                     os.close(fd)
                 part, row = part[count:], row + count
+        if end > self.flushed:
+            fsync_dir(self.folder)  # a new segment's name, durable before the checkpoint that needs it
         self.flushed = end
         return {"first": first, "end": end, "start": buffer.start, "crc32": self.crc32(first, end)}
 

@@ -557,3 +557,31 @@ def test_a_full_disk_at_the_first_checkpoint_does_not_advise_resume(tmp_path, mo
     assert line.startswith("error: no space left on") and "before the run's first checkpoint" in line, line
     assert "--resume" not in line and "is removed" in line and "\n" not in line, line
     assert os.listdir(tmp_path) == []
+
+
+def test_checkpoint_writes_fsync_their_folder_after_the_rename(tmp_path, monkeypatch):
+    """A file's fsync does not make its directory entry durable: after a power loss the folder could still list the
+    old checkpoint (or no new replay segment). Each write fsyncs the folder once its new name is in place."""
+    import stat
+
+    from cascade_plumbing.replay import ReplayBuffer, ReplayFiles
+
+    synced = []
+    real = os.fsync
+
+    def recording_fsync(fd):
+        if stat.S_ISDIR(os.fstat(fd).st_mode):
+            folder = os.readlink(f"/proc/self/fd/{fd}")
+            synced.append((folder, sorted(os.listdir(folder))))
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    checkpoints.save_checkpoint(str(tmp_path / "checkpoint.pt"), {"x": 1})
+    checkpoints.atomic_copy(str(tmp_path / "checkpoint.pt"), str(tmp_path / "iteration_1.pt"))
+    assert synced == [(str(tmp_path), ["checkpoint.pt"]), (str(tmp_path), ["checkpoint.pt", "iteration_1.pt"])]
+    synced.clear()
+    buffer = ReplayBuffer(8, 3, 1)
+    buffer.add(np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 1)), np.zeros(1), np.zeros(1))
+    files = ReplayFiles(str(tmp_path), buffer)
+    files.save()
+    assert synced and synced[-1] == (files.folder, sorted(os.listdir(files.folder))) and synced[-1][1]
