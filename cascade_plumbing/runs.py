@@ -112,6 +112,8 @@ def explicit_fields(args_type: type, argv: list[str]) -> set[str]:
 def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
     """The checkpoint's settings; a conflicting flag on the command line is an error."""
     saved = type(args)(**checkpoint["args"])
+    # the run continues in its folder, wherever that is now (moved off a scratch disk that is gone, say)
+    saved.track_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint["path"])))
     for name in sorted(given - RESUME_OVERRIDABLE):
         if getattr(args, name) != getattr(saved, name):
             fail(f"--{name.replace('_', '-')} {getattr(args, name)} differs from the checkpoint's "

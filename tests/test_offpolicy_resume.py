@@ -311,3 +311,24 @@ def test_a_resume_from_the_middle_of_an_iteration_writes_no_iteration_file_for_i
     record.OPEN_WRITERS.clear()
     assert mod.load_checkpoint(os.path.join(run_dir, "iteration_1.pt"))["global_step"] == 300
     assert "rebuilt" in capsys.readouterr().out
+
+
+def test_a_run_moved_to_another_folder_resumes_there(tmp_path, monkeypatch, capsys):
+    """A killed run whose folder was moved (off a scratch disk that is gone now) resumes in its new place: the saved
+    --track-dir is where the run was, not where it must be."""
+    scratch = tmp_path / "scratch"
+    with monkeypatch.context() as patch:
+        kill_at(patch, 150)
+        with pytest.raises(Killed):
+            cs.train(cs.Args(**TINY, buffer_size=250, track_dir=str(scratch)))
+    record.OPEN_WRITERS.clear()
+    moved = tmp_path / "home" / os.path.basename(only_run_dir(scratch))
+    os.makedirs(moved.parent)
+    shutil.move(only_run_dir(scratch), moved)
+    shutil.rmtree(scratch)
+    scratch.write_text("the scratch disk is gone")  # nothing can be made under the old --track-dir
+    code, _, message = cli_in_process(capsys, "cascade_sac.py", "--resume", moved)
+    assert code == 0, message
+    final = cs.load_checkpoint(str(moved))
+    assert final["global_step"] == 600 and final["args"]["track_dir"] == str(moved.parent)
+    assert os.listdir(tmp_path / "home") == [moved.name]
