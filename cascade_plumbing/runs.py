@@ -151,9 +151,9 @@ def saving(path: str, payload: dict) -> None:
 OPEN_WRITERS: weakref.WeakSet = weakref.WeakSet()  # the runs' TensorBoard writers (cascade_plumbing.record adds them)
 
 
-def this_run_dir(args: Any, checkpoint: dict | None, started: float) -> str | None:
-    """The run's folder: the resumed checkpoint's, or for a new run the newest of its name made since it
-    `started` (None if it has made none yet)."""
+def this_run_dir(checkpoint: dict | None) -> str | None:
+    """The run's folder: the resumed checkpoint's, or for a new run the one it made (None if it has made none yet;
+    not the newest of its name: another run of that name may have started since)."""
     if checkpoint is not None:
         return os.path.dirname(checkpoint["path"])
     return RUN_DIR[-1] if RUN_DIR else None
@@ -206,10 +206,10 @@ def quiet_writer_threads(hook: Callable = threading.excepthook) -> Callable:
     return excepthook
 
 
-def stopped(args: Any, checkpoint: dict | None, started: float) -> None:
+def stopped(checkpoint: dict | None) -> None:
     """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM).
     A new run stopped before its first checkpoint removes its folder: there is nothing in it to resume."""
-    run_dir = this_run_dir(args, checkpoint, started)
+    run_dir = this_run_dir(checkpoint)
     signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
     name = signal.Signals(signum).name
     script = os.path.basename(sys.argv[0])
@@ -361,7 +361,6 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     FINAL[:] = [lambda path, payload: finished(type(args)(**payload["args"]), {**payload, "path": path})]
     if not getattr(threading.excepthook, "quiet_writer_threads", False):
         threading.excepthook = quiet_writer_threads(threading.excepthook)
-    started = time.time()
     RUN_DIR.clear()
     try:
         train(args, checkpoint)
@@ -371,10 +370,10 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
         if isinstance(exc, KeyboardInterrupt):
             end_env_workers()
-            stopped(args, checkpoint, started)
+            stopped(checkpoint)
         if not isinstance(exc, SystemExit) and disk_full(exc):  # a log write (a checkpoint's says so itself)
             end_env_workers()
-            run_dir = this_run_dir(args, checkpoint, started)
+            run_dir = this_run_dir(checkpoint)
             no_space(os.path.abspath(run_dir or args.track_dir), run_dir)
         raise
     # The work is done and saved: a stop from here on must not turn a finished run into a failed one (at
