@@ -27,7 +27,6 @@ wires the run to the shared plumbing (cascade_plumbing/: envs, logging, checkpoi
 from __future__ import annotations
 
 import math
-import os
 import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -43,7 +42,13 @@ from torch.distributions import Normal
 import cascade_plumbing.checkpoints as checkpoints
 from cascade_plumbing.envs import normalize_obs, obs_statistics
 from cascade_plumbing.errors import fail
-from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, mean_action_defined, open_saved_model
+from cascade_plumbing.evaluation import (
+    EvaluationEnvs,
+    EvaluationRunner,
+    mean_action_defined,
+    open_saved_model,
+    save_video_of_one_episode,
+)
 from cascade_plumbing.fast import FastPaths, cascade_ppo_gradients, numpy_cascade_policy, share_one_buffer
 from cascade_plumbing.ppo import (
     check_box_env,
@@ -674,7 +679,7 @@ def make_fast_paths(args: Args, device: torch.device, run: RunLog | None = None)
 # 3. PLUMBING: environments, evaluation, checkpoints, progress, command line
 # ==============================================================================================
 # ----------------------------------------------------------------------------------------------
-# Evaluating a frozen copy (in the evaluation worker, or inline), and videos
+# Evaluating a frozen copy (in the evaluation worker, or inline)
 # ----------------------------------------------------------------------------------------------
 def frozen_actor(obs_dim: int, act_dim: int, args: Args, size: int, state: dict) -> CascadeActor:
     """A `size`-net CascadeActor holding `state`; building it draws no number from the caller's torch RNG
@@ -693,16 +698,6 @@ def evaluate_request(args_dict: dict, obs_dim: int, act_dim: int, evaluator: Eva
     kind, size, state, stats = request
     actor = frozen_actor(obs_dim, act_dim, Args(**args_dict), size, state)
     return (kind, *evaluator(policy_of(actor, kind), stats, call))
-
-
-def record_video(actor: CascadeActor, stats, env_id: str, path: str, deterministic: bool, seed: int) -> float:
-    """Write an mp4 of one evaluation episode (the policy as evaluated); returns its return. Needs an OpenGL
-    backend for MuJoCo."""
-    evaluator = Evaluator(env_id, 1, seed, render=True)
-    returns, _ = evaluator(full_policy(actor), stats, 0, deterministic)
-    evaluator.write_video(path)
-    evaluator.close()
-    return float(returns[0])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -902,10 +897,9 @@ def evaluate_saved(args: Args) -> dict:
                 result["members"].append(member_returns)
                 print(f"  net {net + 1} alone: {member_returns.mean():.1f} ± {member_returns.std():.1f}")
         evaluator.close()
-        if args.capture_video:
-            path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
-            video_return = record_video(actor, stats, saved.env_id, path, args.deterministic, args.seed)
-            print(f"video of one episode (return {video_return:.1f}): {path}")
+        if args.capture_video:  # (needs an OpenGL backend for MuJoCo)
+            save_video_of_one_episode(checkpoint["path"], mode, Evaluator(saved.env_id, 1, args.seed, render=True),
+                                      lambda video: video(full_policy(actor), stats, 0, args.deterministic)[0][0])
     return result
 
 

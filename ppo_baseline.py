@@ -23,7 +23,6 @@ line).
 from __future__ import annotations
 
 import math
-import os
 import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -39,7 +38,13 @@ from torch.distributions import Normal
 import cascade_plumbing.checkpoints as checkpoints
 from cascade_plumbing.envs import normalize_obs, obs_statistics
 from cascade_plumbing.errors import fail
-from cascade_plumbing.evaluation import EvaluationEnvs, EvaluationRunner, mean_action_defined, open_saved_model
+from cascade_plumbing.evaluation import (
+    EvaluationEnvs,
+    EvaluationRunner,
+    mean_action_defined,
+    open_saved_model,
+    save_video_of_one_episode,
+)
 from cascade_plumbing.fast import FastPaths, mlp_ppo_gradients, numpy_mlp_policy, share_one_buffer
 from cascade_plumbing.ppo import (
     check_box_env,
@@ -466,7 +471,7 @@ def make_fast_paths(args: Args, device: torch.device, run: RunLog | None = None)
 
 
 # ----------------------------------------------------------------------------------------------
-# Evaluating a frozen copy (in the evaluation worker, or inline), and videos
+# Evaluating a frozen copy (in the evaluation worker, or inline)
 # ----------------------------------------------------------------------------------------------
 def frozen_actor(obs_dim: int, act_dim: int, hidden_size: int, state: dict) -> Actor:
     """An Actor holding `state`; building it draws no number from the caller's torch RNG (training's, when
@@ -483,15 +488,6 @@ def evaluate_request(args_dict: dict, obs_dim: int, act_dim: int, evaluator: Eva
     state, stats = request
     return evaluator(frozen_actor(obs_dim, act_dim, Args(**args_dict).hidden_size, state), stats, call)
 
-
-def record_video(actor: Actor, stats, env_id: str, path: str, deterministic: bool, seed: int) -> float:
-    """Write an mp4 of one evaluation episode (the policy as evaluated); returns its return. Needs an OpenGL
-    backend for MuJoCo."""
-    evaluator = Evaluator(env_id, 1, seed, render=True)
-    episode_return = evaluator(actor, stats, 0, deterministic)[0]
-    evaluator.write_video(path)
-    evaluator.close()
-    return float(episode_return)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -631,10 +627,9 @@ def evaluate_saved(args: Args) -> dict:
         mode = "deterministic" if args.deterministic else "stochastic"
         print(f"{env_id}, PPO, step {checkpoint['global_step']}: "
               f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
-        if args.capture_video:
-            path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
-            video_return = record_video(actor, stats, env_id, path, args.deterministic, args.seed)
-            print(f"video of one episode (return {video_return:.1f}): {path}")
+        if args.capture_video:  # (needs an OpenGL backend for MuJoCo)
+            save_video_of_one_episode(checkpoint["path"], mode, Evaluator(env_id, 1, args.seed, render=True),
+                                      lambda video: video(actor, stats, 0, args.deterministic)[0])
     return {"returns": returns}
 
 

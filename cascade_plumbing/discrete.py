@@ -7,7 +7,6 @@ run (on evaluation.EvaluationEnvs)."""
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any
@@ -20,7 +19,7 @@ from . import envs as plumbing_envs
 from .checkpoints import non_finite_advice
 from .envs import OBS_CLIP, obs_statistics, probe_spaces
 from .errors import fail
-from .evaluation import EvaluationEnvs, open_saved_model
+from .evaluation import EvaluationEnvs, open_saved_model, save_video_of_one_episode
 from .record import RunRecord
 
 MAX_DISCRETIZED_DIMS = 10  # 2^10 = 1024 actions; Humanoid's 17 dims (131072 actions) are out of scope
@@ -230,10 +229,7 @@ def evaluate_saved_model(args: Any, load_checkpoint: Callable[[str], dict],
     print(f"{env_id}, {what}, step {checkpoint['global_step']}: "
           f"return {returns.mean():.1f} ± {returns.std():.1f} over {len(returns)} {mode} episodes")
     if args.capture_video:
-        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
-        video = EvaluationEpisodes(env_id, 1, args.seed, checkpoint["discretize"], render=True)
-        video_returns, _ = evaluate(checkpoint, video)
-        video.write_video(path)
-        video.close()
-        print(f"video of one episode (return {video_returns[0]:.1f}): {path}")
+        save_video_of_one_episode(checkpoint["path"], mode,
+                                  EvaluationEpisodes(env_id, 1, args.seed, checkpoint["discretize"], render=True),
+                                  lambda video: evaluate(checkpoint, video)[0][0])
     return returns

@@ -156,6 +156,17 @@ class EvaluationEnvs:
             env.close()
 
 
+def save_video_of_one_episode(checkpoint_path: str, mode: str, video: EvaluationEnvs,
+                              run: Callable[[EvaluationEnvs], float]) -> None:
+    """--evaluate --capture-video: one more episode, `run(video)` on `video` (made with render=True; it returns the
+    episode's return), written as <checkpoint>_<mode>.mp4 beside the checkpoint; one line says where."""
+    path = os.path.splitext(checkpoint_path)[0] + f"_{mode}.mp4"
+    episode_return = run(video)
+    video.write_video(path)
+    video.close()
+    print(f"video of one episode (return {episode_return:.1f}): {path}")
+
+
 def open_saved_model(args: Any, load_checkpoint: Callable[[str], dict]) -> dict:
     """The start of --evaluate: --eval-episodes checked, the checkpoint `args.evaluate` loaded, with
     --capture-video its env's renderer tried (one line now, before any episode is run), torch's threads set."""

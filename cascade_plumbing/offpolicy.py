@@ -10,7 +10,6 @@ script's."""
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -24,7 +23,7 @@ import torch.nn as nn
 from .checkpoints import non_finite_advice
 from .envs import probe_spaces
 from .errors import fail
-from .evaluation import EvaluationEnvs, open_saved_model
+from .evaluation import EvaluationEnvs, open_saved_model, save_video_of_one_episode
 from .fast import plain_fused_adam
 from .record import RunRecord
 from .replay import ReplayBuffer, ReplayFiles, available_memory, buffer_capacity, store_transition
@@ -153,12 +152,9 @@ def evaluate_saved_policy(args: Any, load_checkpoint: Callable[[str], dict],
             print(f"  net {net + 1} alone: {member_returns.mean():.1f} ± {member_returns.std():.1f}")
     evaluator.close()
     if args.capture_video:
-        path = os.path.splitext(checkpoint["path"])[0] + f"_{mode}.mp4"
-        video = Evaluator(saved["env_id"], 1, args.seed, saved["obs_reward_clip"], render=True)
-        video_returns, _ = video(full)
-        video.write_video(path)
-        video.close()
-        print(f"video of one episode (return {video_returns[0]:.1f}): {path}")
+        save_video_of_one_episode(checkpoint["path"], mode,
+                                  Evaluator(saved["env_id"], 1, args.seed, saved["obs_reward_clip"], render=True),
+                                  lambda video: video(full)[0][0])
     return result
 
 

@@ -44,13 +44,22 @@ def check_track_dir(track_dir: str) -> None:
              "pass a writable folder")
 
 
+def check_seed(seed: int) -> None:
+    if not 0 <= seed < 2**32:
+        fail(f"--seed must be a non-negative integer below 2**32 (got {seed}); numpy and gymnasium refuse others")
+
+
+def check_threads(threads: int) -> None:
+    if threads < 1:
+        fail(f"--torch-threads must be at least 1 (got {threads})")
+
+
 def set_threads(threads: int) -> None:
     """`threads` CPU threads for torch; one for numpy's OpenBLAS. It would otherwise take every core for a 256-wide
     product (the SAC fast path's), so one run would use two cores; and with torch's OpenMP threads beside its own,
     both spinning between calls, a 2-thread SAC run measured 15x slower (docs/performance.md, "SAC and DDPG"). Only OpenBLAS (what
     numpy's wheels carry): a BLAS that torch shares (a conda MKL) keeps torch's setting."""
-    if threads < 1:  # (training checks it with the other settings; --evaluate meets it here)
-        fail(f"--torch-threads must be at least 1 (got {threads})")
+    check_threads(threads)  # (training checks it with the other settings; --evaluate meets it here)
     torch.set_num_threads(threads)
     ThreadpoolController().select(internal_api="openblas").limit(limits=1)
 
@@ -299,10 +308,8 @@ def check_common_settings(args: Any) -> None:
     """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left);
     first every real-valued setting: finite and in its range (errors.check_ranges)."""
     check_ranges(args)
-    if not 0 <= args.seed < 2**32:
-        fail(f"--seed must be a non-negative integer below 2**32 (got {args.seed}); numpy and gymnasium refuse others")
-    if args.torch_threads < 1:
-        fail(f"--torch-threads must be at least 1 (got {args.torch_threads})")
+    check_seed(args.seed)
+    check_threads(args.torch_threads)
     if getattr(args, "checkpoint_every", 0) < 0:
         fail(f"--checkpoint-every must be >= 0 (0: only the checkpoints a run always writes; got {args.checkpoint_every})")
     check_track_dir(args.track_dir)
@@ -319,8 +326,7 @@ def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], An
     if "env_id" in given:
         fail(f"--env-id has no effect with --evaluate: the saved model is evaluated on the env it was trained on "
              f"(saved in {args.evaluate}); leave --env-id out")
-    if not 0 <= args.seed < 2**32:
-        fail(f"--seed must be a non-negative integer below 2**32 (got {args.seed}); numpy and gymnasium refuse others")
+    check_seed(args.seed)
     signal.signal(signal.SIGTERM, stop_signal)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, stop_signal)
