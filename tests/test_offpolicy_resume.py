@@ -45,6 +45,15 @@ def kill_at(monkeypatch, step):
     monkeypatch.setattr(offpolicy.OffPolicyRun, "step", step_then_die)
 
 
+def train_killed_at(monkeypatch, mod, step, args, checkpoint=None):
+    """`mod.train(args, checkpoint)` killed right after env step `step` (`kill_at`), as a SIGKILL would stop it."""
+    with monkeypatch.context() as patch:
+        kill_at(patch, step)
+        with pytest.raises(Killed):
+            mod.train(args, checkpoint)
+    record.OPEN_WRITERS.clear()  # (the killed run's writer: a real kill leaves it behind too)
+
+
 def final_state(result, algo):
     return {name: {k: v.clone() for k, v in result[name].state_dict().items()} for name in NETS[algo]}
 
@@ -89,11 +98,7 @@ def test_a_run_killed_at_any_step_resumes_bit_identical(algo, keep_buffer, kill_
     monkeypatch.setattr(ReplayFiles, "SEGMENT_ROWS", 16)
     expected, expected_scalars = uninterrupted(algo, keep_buffer)
     args = mod.Args(**TINY, keep_buffer=keep_buffer, buffer_size=250, track_dir=str(tmp_path))
-    with monkeypatch.context() as patch:
-        kill_at(patch, kill_step)
-        with pytest.raises(Killed):
-            mod.train(args)
-    record.OPEN_WRITERS.clear()  # (the killed run's writer: a real kill leaves it behind too)
+    train_killed_at(monkeypatch, mod, kill_step, args)
     run_dir = only_run_dir(tmp_path)
     assert mod.load_checkpoint(run_dir)["global_step"] == max(s for s in CHECKPOINT_STEPS if s < kill_step)
     resumed = resume(mod, run_dir)
@@ -136,11 +141,7 @@ def test_a_resume_named_in_the_same_second_is_read_after_the_killed_run(uninterr
     host), and its curves were read out of order. Here the killed run's file is renamed to sort after anything
     named now; the resumed run's file must still come last."""
     expected, expected_scalars = uninterrupted("sac", False)
-    with monkeypatch.context() as patch:
-        kill_at(patch, 141)
-        with pytest.raises(Killed):
-            cs.train(cs.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
-    record.OPEN_WRITERS.clear()
+    train_killed_at(monkeypatch, cs, 141, cs.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
     run_dir = only_run_dir(tmp_path)
     [killed] = [name for name in os.listdir(run_dir) if name.startswith("events.out.tfevents.")]
     os.rename(os.path.join(run_dir, killed),
@@ -275,40 +276,25 @@ def test_a_resume_from_the_middle_of_an_iteration_writes_no_iteration_file_for_i
     right after an iteration's end, its iteration file lost, does get it back from the checkpoint."""
     mod = SCRIPTS[algo]
     args = mod.Args(**TINY, buffer_size=250, track_dir=str(tmp_path))
-    with monkeypatch.context() as patch:
-        kill_at(patch, 450)
-        with pytest.raises(Killed):
-            mod.train(args)
-    record.OPEN_WRITERS.clear()
+    train_killed_at(monkeypatch, mod, 450, args)
     run_dir = only_run_dir(tmp_path)
     first = open(os.path.join(run_dir, "iteration_1.pt"), "rb").read()
     checkpoint = mod.load_checkpoint(run_dir)
     assert (checkpoint["global_step"], checkpoint["iteration"], checkpoint["steps_done"]) == (440, 2, 140)
-    with monkeypatch.context() as patch:  # the resume is stopped again right after its first step
-        kill_at(patch, 441)
-        with pytest.raises(Killed):
-            mod.train(mod.Args(**checkpoint["args"]), checkpoint)
-    record.OPEN_WRITERS.clear()
+    # the resume is stopped again right after its first step
+    train_killed_at(monkeypatch, mod, 441, mod.Args(**checkpoint["args"]), checkpoint)
     assert not os.path.exists(os.path.join(run_dir, "iteration_2.pt"))
     assert open(os.path.join(run_dir, "iteration_1.pt"), "rb").read() == first  # the end of iteration 1, untouched
     assert "rebuilt" not in capsys.readouterr().out
 
     # killed right after the end of iteration 1, and its iteration_1.pt lost: rebuilt from the checkpoint
     shutil.rmtree(run_dir)
-    with monkeypatch.context() as patch:
-        kill_at(patch, 301)
-        with pytest.raises(Killed):
-            mod.train(args)
-    record.OPEN_WRITERS.clear()
+    train_killed_at(monkeypatch, mod, 301, args)
     run_dir = only_run_dir(tmp_path)
     os.remove(os.path.join(run_dir, "iteration_1.pt"))
     checkpoint = mod.load_checkpoint(run_dir)
     assert (checkpoint["iteration"], checkpoint["steps_done"]) == (1, 300)
-    with monkeypatch.context() as patch:
-        kill_at(patch, 301)
-        with pytest.raises(Killed):
-            mod.train(mod.Args(**checkpoint["args"]), checkpoint)
-    record.OPEN_WRITERS.clear()
+    train_killed_at(monkeypatch, mod, 301, mod.Args(**checkpoint["args"]), checkpoint)
     assert mod.load_checkpoint(os.path.join(run_dir, "iteration_1.pt"))["global_step"] == 300
     assert "rebuilt" in capsys.readouterr().out
 
@@ -317,11 +303,7 @@ def test_a_run_moved_to_another_folder_resumes_there(tmp_path, monkeypatch, caps
     """A killed run whose folder was moved (off a scratch disk that is gone now) resumes in its new place: the saved
     --track-dir is where the run was, not where it must be."""
     scratch = tmp_path / "scratch"
-    with monkeypatch.context() as patch:
-        kill_at(patch, 150)
-        with pytest.raises(Killed):
-            cs.train(cs.Args(**TINY, buffer_size=250, track_dir=str(scratch)))
-    record.OPEN_WRITERS.clear()
+    train_killed_at(monkeypatch, cs, 150, cs.Args(**TINY, buffer_size=250, track_dir=str(scratch)))
     moved = tmp_path / "home" / os.path.basename(only_run_dir(scratch))
     os.makedirs(moved.parent)
     shutil.move(only_run_dir(scratch), moved)
