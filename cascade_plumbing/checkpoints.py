@@ -162,9 +162,29 @@ def intact_beside(path: str) -> str:
                     continue
         except (OSError, zipfile.BadZipFile):
             continue
+        script = os.path.basename(sys.argv[0])
+        if not replay_rows_kept(run_dir, candidate):
+            return (f"; the newest intact checkpoint beside it, {candidate} (the end of iteration {i}), cannot continue "
+                    "the run either: the replay rows it needs (--keep-buffer) were deleted as the run moved on; "
+                    f"evaluate it with: python {script} --evaluate {candidate}, or start a new run")
         return (f"; the newest intact checkpoint beside it is {candidate} (the end of iteration {i}): continue the "
-                f"run from there with: python {os.path.basename(sys.argv[0])} --resume {candidate}")
+                f"run from there with: python {script} --resume {candidate}")
     return "; no intact iteration_<i>.pt is beside it to continue from: start a new run"
+
+
+def replay_rows_kept(run_dir: str, path: str) -> bool:
+    """Whether an intact off-policy iteration_<i>.pt can continue its run: resumed at an iteration's end, it needs
+    its replay rows only with --keep-buffer, and those may have been deleted since (a wrapped buffer moves its first
+    row on). Always true for the PPO scripts' files, which hold no replay buffer."""
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+        saved, args = checkpoint.get("replay"), checkpoint.get("args", {})
+    except Exception:  # not one of ours after all: the resume that it advises says so in its own line
+        return True
+    if not saved or not args.get("keep_buffer") or saved["end"] == saved["first"]:
+        return True
+    from .replay import ReplayFiles  # (replay.py imports this module)
+    return ReplayFiles.kept(run_dir, saved)
 
 
 def load_optimizer(optimizer: torch.optim.Optimizer, state: dict) -> None:

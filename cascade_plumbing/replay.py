@@ -97,7 +97,17 @@ class ReplayFiles:
         self.flushed = 0  # log rows before this one are on disk
 
     def segment(self, index: int) -> str:
-        return os.path.join(self.folder, f"rows_{index:06d}.f32")
+        return os.path.join(self.folder, segment_name(index))
+
+    @classmethod
+    def kept(cls, run_dir: str, saved: dict) -> bool:
+        """Whether the segment files of a checkpoint's rows (`saved`, its "replay") are still in `run_dir`/replay:
+        rows before the latest checkpoint's first are deleted as the run moves on, so an older checkpoint's may
+        be gone (whether the files are whole is checked by `restore`)."""
+        first, end = saved["first"], saved["end"]
+        folder = os.path.join(run_dir, "replay")
+        return all(os.path.isfile(os.path.join(folder, segment_name(index)))
+                   for index in range(first // cls.SEGMENT_ROWS, (end - 1) // cls.SEGMENT_ROWS + 1))
 
     def save(self) -> dict:
         """Write the rows added since the last save (fsync'd), before the checkpoint that records them; returns
@@ -166,6 +176,10 @@ class ReplayFiles:
         fail(f"the checkpoint's replay buffer (log rows {first}..{end - 1}) is not in {self.folder}: a checkpoint "
              "resumes with its run folder's replay/ files, which keep only what the latest checkpoint needs; resume "
              "the run folder itself (its checkpoint.pt), or start a new run")
+
+
+def segment_name(index: int) -> str:
+    return f"rows_{index:06d}.f32"
 
 
 def store_transition(buffer: ReplayBuffer, obs: np.ndarray, actions: np.ndarray, next_obs: np.ndarray,

@@ -152,6 +152,39 @@ def test_a_resume_named_in_the_same_second_is_read_after_the_killed_run(uninterr
         assert scalars[tag] == expected_scalars[tag], tag
 
 
+@pytest.mark.parametrize("keep_buffer", [False, True], ids=["standard", "keep-buffer"])
+def test_a_corrupt_checkpoint_names_an_iteration_file_only_if_it_can_continue(keep_buffer, uninterrupted, tmp_path,
+                                                                             monkeypatch, capsys):
+    """A corrupt checkpoint.pt names the newest intact iteration_<i>.pt to continue from. Resumed at an iteration's
+    end, a --keep-buffer run needs that file's replay rows, which the run deleted as its wrapped buffer moved on:
+    the line then says the file cannot continue the run (naming --evaluate), instead of sending the user on to a
+    second error. Without --keep-buffer the named file continues the run, to the uninterrupted end."""
+    monkeypatch.setattr(ReplayFiles, "SEGMENT_ROWS", 16)
+    args = cs.Args(**TINY, keep_buffer=keep_buffer, buffer_size=250, track_dir=str(tmp_path))
+    train_killed_at(monkeypatch, cs, 563, args)  # checkpoint.pt at 510: its buffer starts at row 260
+    run_dir = only_run_dir(tmp_path)
+    with open(os.path.join(run_dir, "checkpoint.pt"), "wb") as f:
+        f.write(b"\0" * 1000)  # a disk error
+    iteration_1 = os.path.join(run_dir, "iteration_1.pt")
+    code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", run_dir)
+    assert code == 1 and error.startswith("error: cannot read checkpoint") and "\n" not in error, error
+    if keep_buffer:  # iteration 1's buffer, rows 50..299, was in segments 3..18, deleted up to segment 15
+        assert error.endswith(f"{iteration_1} (the end of iteration 1), cannot continue the run either: the replay "
+                              "rows it needs (--keep-buffer) were deleted as the run moved on; evaluate it with: "
+                              f"python cascade_sac.py --evaluate {iteration_1}, or start a new run"), error
+        code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", iteration_1)
+        assert code == 1 and "is not in" in error, error  # what the line spares the user
+    else:
+        assert error.endswith(f"continue the run from there with: python cascade_sac.py --resume {iteration_1}")
+        code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", iteration_1)
+        assert code == 0 and error == "", error
+        expected, _ = uninterrupted("sac", False)
+        final = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)
+        assert final["global_step"] == 600
+        assert_identical({name: expected[name] for name in ("actor", "qf")},
+                         {"actor": final["actor"], "qf": final["qf"]})
+
+
 def test_replay_files_round_trip_a_wrapped_buffer(tmp_path):
     """The rows on disk give back the very buffer: its rows in their ring positions, its position and size, and the
     same samples; after a clear, only rows added since."""
