@@ -9,7 +9,7 @@ completion marker `<sweep-dir>/done/<same name>.json` (written last). Re-running
 runs and restarts the others, resuming from their own checkpoint when one exists (a run folder without a
 checkpoint, left by a run killed before its first one, is removed then); a re-run with other flags (or
 another --scale) is another setup, so it starts new runs and never continues old ones. Failures are
-reported at the end with the path of their log; they do not stop the other runs. Ctrl-C or SIGTERM stops
+reported at the end with their error line and log; they do not stop the other runs. Ctrl-C or SIGTERM stops
 the running runs (each resumes on the next call) and ends the sweep with one line saying so (exit 130 / 143).
 
     python sweep.py --preset standard --envs Hopper-v4 --seeds 1 2 --scale 0.01
@@ -26,6 +26,7 @@ import functools
 import glob
 import hashlib
 import json
+import math
 import os
 import shlex
 import shutil
@@ -60,7 +61,7 @@ class Args:
     seeds: list[str] = field(default_factory=lambda: ["1"])
     """seeds (integers); every run of the grid is made for each"""
     scale: float = 1.0
-    """multiply every step budget (--k, --total-timesteps) by this, e.g. 0.01 for a quick check; the checkpoint cadence (--checkpoint-every, the script's default too) scales with it"""
+    """multiply every step count by this, e.g. 0.01 for a quick check: the budgets (--k, --total-timesteps, --cycle-steps), --learning-starts, --eval-every (at least 1000) and --checkpoint-every (at least 2048), the template's or the script's default; a PPO budget below one rollout is refused"""
     sweep_dir: str | None = None
     """folder for runs/, logs/ and done/ markers (default: sweeps/<presets or 'custom'>); on a cluster, a shared folder"""
     backend: Literal["local", "ray"] = "local"
@@ -92,7 +93,7 @@ class Args:
 # ----------------------------------------------------------------------------------------------
 # The paper's experiments (Schmöcker & Dockhorn, RLJ 2025: Section 4, Fig. 2-8; Appendices D-I, Fig. 9-16). Each
 # entry: label, script, flags.
-# Budget flags (--k, --total-timesteps) are scaled by --scale.
+# Step counts (budgets, warm-ups, evaluation and checkpoint cadences) are scaled by --scale (scale_template).
 # ----------------------------------------------------------------------------------------------
 CASCADE = "cascade_ppo_continuous.py"
 PPO = "ppo_baseline.py"
@@ -176,12 +177,19 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     "sac": ("Fig. 14 as results/ runs it: Cascade-SAC vs SAC (2M steps, eval every 50k); run with --envs Hopper-v4 "
             "HalfCheetah-v4", every_50k(SAC_RUNS)),
 }
-BUDGET_FLAGS = ("--k", "--total-timesteps", "--cycle-steps")
-MIN_BUDGET = 2048  # one PPO rollout: a scaled budget (or checkpoint cadence) never goes below it
-CADENCE_FLAG = "--checkpoint-every"  # scaled too; 0 (checkpoints at iteration ends only) stays 0
-# the off-policy warm-up (uniform-random steps before updates, after each new net) scales with the budget it is part of;
-# it changes what a run computes, so the scaled default is part of the run's identity (unlike the cadence)
+# What --scale multiplies (a 0, "off", stays 0). The budgets: a PPO budget below one rollout is refused, not raised.
+SCALED_BUDGETS = ("--k", "--total-timesteps", "--cycle-steps")
+# the off-policy warm-up (uniform-random steps before updates, after each new net) scales with the budget it is part of
 WARMUP_FLAG = "--learning-starts"
+EVAL_FLAG = "--eval-every"  # so that a quick check keeps a learning curve
+MIN_EVAL_EVERY = 1000  # ... of at most one evaluation per 1000 steps (each is --eval-episodes whole episodes)
+CADENCE_FLAG = "--checkpoint-every"  # not part of a run's identity (a resume may change it)
+MIN_CADENCE = 2048  # a checkpoint costs ~0.1-0.2 s: not more often than this
+# a scaled template that leaves one of these at the script's default gets the default, scaled: (Args field, flag)
+SCALED_DEFAULTS = (("k", "--k"), ("total_timesteps", "--total-timesteps"), ("learning_starts", WARMUP_FLAG),
+                   ("eval_every", EVAL_FLAG))
+# the sweep sets these for each run itself
+SWEEP_FLAGS = ("--env-id", "--seed", "--track-dir", "--resume", "--evaluate")
 
 
 @dataclass
@@ -239,32 +247,20 @@ def tracking_flags(args: Args, sweep_dir: str) -> list[str]:
     return flags + (["--wandb-entity", args.wandb_entity] if args.wandb_entity else [])
 
 
-def scale_flags(flags: list[str], scale: float) -> list[str]:
-    """Budgets and the checkpoint cadence (`--k 1000000` or `--k=1000000`) times `scale`, never below one PPO
-    rollout; a cadence of 0 (no checkpoints between iteration ends) stays 0. The off-policy warm-up
-    (--learning-starts) times `scale` too, with no floor."""
-    def scaled(name: str, value: str) -> str:
-        if name == CADENCE_FLAG and int(value) == 0:
-            return value
-        if name == WARMUP_FLAG:
-            return str(int(round(int(value) * scale)))
-        return str(max(int(round(int(value) * scale)), MIN_BUDGET))
-
-    out = list(flags)
-    for i, flag in enumerate(out):
-        name, eq, value = flag.partition("=")
-        if name not in (*BUDGET_FLAGS, CADENCE_FLAG, WARMUP_FLAG):
-            continue
-        if eq:
-            out[i] = f"{name}={scaled(name, value)}"
-        elif i + 1 < len(out):
-            out[i + 1] = scaled(name, out[i + 1])
-    return out
+def flag_value(flags: list[str], name: str) -> str | None:
+    """The value a command's flags give `name` (`--k 100` or `--k=100`; the last one wins, as in the scripts)."""
+    value = None
+    for i, flag in enumerate(flags):
+        key, eq, rest = flag.partition("=")
+        if key == name:
+            value = rest if eq else (flags[i + 1] if i + 1 < len(flags) else None)
+    return value
 
 
 @functools.cache
 def script_default(script: str, field: str) -> int | None:
-    """The script's default of its Args field `field` (e.g. checkpoint_every), or None where it has no such flag."""
+    """The script's default of its Args field `field` (e.g. checkpoint_every), or None where it has no such flag
+    (or its default is None)."""
     try:
         with open(os.path.join(ROOT, script)) as f:
             tree = ast.parse(f.read())
@@ -281,22 +277,80 @@ def script_default(script: str, field: str) -> int | None:
     return None
 
 
-def scaled_cadence(script: str, flags: list[str], scale: float) -> list[str]:
-    """A scaled run whose template leaves --checkpoint-every at the script's default gets that default scaled
-    (a run scaled down 100x would otherwise write no checkpoint before its end, and restart from zero when killed)."""
+def rollout_steps(script: str, flags: list[str]) -> int | None:
+    """The env steps of one PPO rollout of `script` run with `flags` (--num-envs x --num-steps, the continuous
+    scripts' default 2048 // num_envs each), or None for the off-policy scripts."""
+    if script_default(script, "num_minibatches") is None:
+        return None
+    num_envs = int(flag_value(flags, "--num-envs") or script_default(script, "num_envs") or 1)
+    num_steps = int(flag_value(flags, "--num-steps") or script_default(script, "num_steps") or max(2048 // num_envs, 1))
+    return num_envs * num_steps
+
+
+def scale_template(script: str, flags: list[str], scale: float, template: str) -> tuple[list[str], list[str]]:
+    """A template's flags at `scale`, and the checkpoint cadence to add: (flags, cadence).
+
+    At scale 1 the flags are the command as written. Otherwise every step count is multiplied by `scale`, where the
+    template gives it and where it leaves the script's default (then added, scaled): the budgets (SCALED_BUDGETS),
+    the off-policy warm-up and the evaluation cadence (part of the run's identity: they change what it computes or
+    logs), and the checkpoint cadence (not: `cadence`, added after the identity flags). A scaled PPO budget smaller
+    than one rollout is refused (raising it would break the equal budgets a figure compares); a 0 (off) stays 0."""
+    if scale == 1:
+        return list(flags), []
+    out = list(flags)
+    for field_name, flag in SCALED_DEFAULTS:
+        default = script_default(script, field_name)
+        if isinstance(default, int) and flag_value(out, flag) is None:
+            out += [flag, str(default)]
+    rollout = rollout_steps(script, out)
+
+    def scaled(name: str, value: str) -> str:
+        try:
+            steps = int(value)
+        except ValueError:
+            fail(f"{name} {value} in '{template}' is not a whole number of steps; write it as one, e.g. {name} 1000000")
+        new = int(round(steps * scale))
+        if steps == 0 or name == WARMUP_FLAG:
+            return str(new)
+        if name == EVAL_FLAG:
+            return str(max(new, MIN_EVAL_EVERY))
+        if name in SCALED_BUDGETS and rollout and new < rollout:
+            fail(f"--scale {scale:g} makes {name} {steps} of '{template}' {new} steps, less than one PPO rollout "
+                 f"({rollout} steps); use --scale {rollout / steps:.2g} or more")
+        return str(new)
+
+    for i, flag in enumerate(out):
+        name, eq, value = flag.partition("=")
+        if name not in (*SCALED_BUDGETS, WARMUP_FLAG, EVAL_FLAG, CADENCE_FLAG):
+            continue
+        if name == CADENCE_FLAG:
+            value = value if eq else (out[i + 1] if i + 1 < len(out) else "")
+            new = scaled_cadence(value, scale, template)
+        elif eq:
+            new = scaled(name, value)
+        elif i + 1 < len(out):
+            new = scaled(name, out[i + 1])
+        else:
+            continue
+        if eq:
+            out[i] = f"{name}={new}"
+        elif i + 1 < len(out):
+            out[i + 1] = new
     default = script_default(script, "checkpoint_every")
-    if scale == 1 or not default or any(flag.partition("=")[0] == CADENCE_FLAG for flag in flags):
-        return []
-    return [CADENCE_FLAG, scale_flags([CADENCE_FLAG, str(default)], scale)[1]]
+    cadence = []
+    if default and flag_value(out, CADENCE_FLAG) is None:
+        # a scaled run left at the script's default would write no checkpoint before its end
+        cadence = [CADENCE_FLAG, scaled_cadence(str(default), scale, template)]
+    return out, cadence
 
 
-def scaled_warmup(script: str, flags: list[str], scale: float) -> list[str]:
-    """A scaled off-policy run whose template leaves --learning-starts at the script's default gets that default
-    scaled (SAC's 5000 random steps would otherwise fill a whole --k 5000 iteration of a 1% run)."""
-    default = script_default(script, "learning_starts")
-    if scale == 1 or default is None or any(flag.partition("=")[0] == WARMUP_FLAG for flag in flags):
-        return []
-    return [WARMUP_FLAG, scale_flags([WARMUP_FLAG, str(default)], scale)[1]]
+def scaled_cadence(value: str, scale: float, template: str) -> str:
+    """--checkpoint-every times `scale`, never below MIN_CADENCE; 0 (at iteration ends only) stays 0."""
+    try:
+        steps = int(value)
+    except ValueError:
+        fail(f"{CADENCE_FLAG} {value} in '{template}' is not a whole number of steps")
+    return str(max(int(round(steps * scale)), MIN_CADENCE)) if steps else "0"
 
 
 def expand(args: Args) -> list[Run]:
@@ -319,18 +373,24 @@ def expand(args: Args) -> list[Run]:
             at = flags.index("--exp-name")
             label, flags = flags[at + 1], flags[:at] + flags[at + 2 :]
         templates.append((label, parts[0], flags))
-    if not args.scale > 0:
+    if not (math.isfinite(args.scale) and args.scale > 0):
         fail(f"--scale must be positive (got {args.scale}); e.g. 0.01 for a quick check, 1 for the paper's budgets")
     if not templates:
         fail("nothing to run: give --preset NAME (see --list-presets) and/or --command TEMPLATE")
+    scaled = []
+    for label, script, flags in templates:
+        template = shlex.join([script, *flags])
+        for flag in flags:
+            if flag.partition("=")[0] in SWEEP_FLAGS:
+                fail(f"'{template}' sets {flag.partition('=')[0]}, which the sweep sets for each run itself: give "
+                     "env ids with --envs and seeds with --seeds, and the sweep folder with --sweep-dir")
+        scaled.append((label, script, *scale_template(script, flags, args.scale, template)))
     runs, seen = [], set()
     # env by env, seed by seed: the runs one figure panel compares finish together
     for env_id in args.envs:
         for seed in seeds:
-            for label, script, flags in templates:
-                run = Run(label, script, scale_flags(flags, args.scale) + scaled_warmup(script, flags, args.scale),
-                          env_id, seed,
-                          scaled_cadence(script, flags, args.scale))
+            for label, script, flags, cadence in scaled:
+                run = Run(label, script, flags, env_id, seed, cadence)
                 if run.run_id not in seen:  # presets share some runs (e.g. standard Cascade)
                     seen.add(run.run_id)
                     runs.append(run)
@@ -613,9 +673,21 @@ def sweep() -> None:
     print(f"[sweep] finished: {tracker.done + skipped} of {len(runs)} runs done ({skipped} skipped), "
           f"{len(tracker.failed)} failed", flush=True)
     for run, log, code in tracker.failed:
-        print(f"  FAILED {run.run_id} (exit {code}): see {log}")
+        print(f"  FAILED {run.run_id} (exit {code}): {last_line(log)}; log: {log}")
     if tracker.failed:
         sys.exit(1)
+
+
+def last_line(log: str) -> str:
+    """The last non-empty line of a run's log: the one-line error a script stops with (shortened)."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(max(os.path.getsize(log) - 4096, 0))
+            lines = [line.strip() for line in f.read().decode(errors="replace").splitlines() if line.strip()]
+    except OSError:
+        return "(no log)"
+    line = lines[-1] if lines else "(empty log)"
+    return line if len(line) <= 300 else line[:297] + "..."
 
 
 def stop_line(signum: int, stopped: list[Run], not_started: int, tracker: Tracker, python: str, track_dir: str) -> str:

@@ -10,7 +10,7 @@ import tempfile
 import pytest
 
 import sweep
-from helpers import ROOT, read_scalars, run_script
+from helpers import ROOT, error_line, read_scalars, run_script
 
 TINY = ("cascade_ppo_continuous.py --n 1 --k 2048 --num-steps 512 --num-minibatches 4 --update-epochs 1 "
         "--eval-every 0 --checkpoint-every 0")
@@ -29,9 +29,11 @@ def test_every_preset_expands_to_the_papers_grid(preset):
         command = run.command(sys.executable, "/tmp/none")
         assert command[command.index("--exp-name") + 1] == run.label
         for flag in ("--k", "--total-timesteps", "--cycle-steps"):  # the budgets in env steps (Fig. 3's cycle too)
-            if flag in run.flags:  # budgets scaled by 0.01, never below one rollout
+            if flag in run.flags:  # budgets scaled by 0.01 exactly (the runs a figure compares keep equal budgets)
                 original = dict(zip(*[iter(dict((lab, f) for lab, _, f in entries)[run.label].split())] * 2))
-                assert int(run.flags[run.flags.index(flag) + 1]) == max(round(int(original[flag]) * 0.01), 2048)
+                assert int(run.flags[run.flags.index(flag) + 1]) == round(int(original[flag]) * 0.01)
+        # the evaluation cadence too (the presets' 50000, the scripts' default 10000), not below 1000 steps
+        assert sweep.flag_value(run.flags, "--eval-every") == "1000"
         # and a checkpoint cadence scaled with them (the PPO scripts' default 100000: one rollout)
         assert run.cadence == ["--checkpoint-every", "2048"]
 
@@ -50,7 +52,8 @@ def test_scale_scales_the_checkpoint_cadence():
         assert sweep.script_default(script, "checkpoint_every") == 50_000, script
         assert one(f"{script} --n 2 --k 1000000", 0.01).cadence == ["--checkpoint-every", "2048"]
     run = one("cascade_ppo_continuous.py --n 6 --k 1000000", 0.01)
-    assert run.flags == ["--n", "6", "--k", "10000"] and run.cadence == ["--checkpoint-every", "2048"]
+    assert run.flags == ["--n", "6", "--k", "10000", "--eval-every", "1000"]
+    assert run.cadence == ["--checkpoint-every", "2048"]
     command = run.command(sys.executable, "/tmp/none")
     assert command[command.index("--checkpoint-every") + 1] == "2048"
     assert run.setup_hash == sweep.Run(run.label, run.script, run.flags, run.env_id, run.seed).setup_hash
@@ -58,16 +61,63 @@ def test_scale_scales_the_checkpoint_cadence():
     full = one("cascade_ppo_continuous.py --n 6 --k 1000000", 1)  # unscaled: the command as before
     assert full.cadence == [] and "--checkpoint-every" not in full.command(sys.executable, "/tmp/none")
     # a cadence in the template scales in place; 0 (checkpoints at iteration ends only) stays 0
-    assert one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 50000", 0.1).flags[-2:] == \
+    assert one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 50000", 0.1).flags[2:4] == \
         ["--checkpoint-every", "5000"]
-    assert one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every=50000", 0.01).flags[-1] == \
+    assert one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every=50000", 0.01).flags[2] == \
         "--checkpoint-every=2048"
     explicit = one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 0", 0.01)
-    assert explicit.flags[-2:] == ["--checkpoint-every", "0"] and explicit.cadence == []
-    assert one("ppo_baseline.py --total-timesteps=6000000", 0.01).flags == ["--total-timesteps=60000"]
+    assert explicit.flags[2:4] == ["--checkpoint-every", "0"] and explicit.cadence == []
+    assert one("ppo_baseline.py --total-timesteps=6000000 --eval-every 0", 0.01).flags == \
+        ["--total-timesteps=60000", "--eval-every", "0"]  # evaluation off stays off
     # Fig. 3's LR cycle shrinks with the run it divides (6 cycles either way)
-    assert one("ppo_baseline.py --total-timesteps 6000000 --cycle-steps 1000000", 0.01).flags == \
-        ["--total-timesteps", "60000", "--cycle-steps", "10000"]
+    assert one("ppo_baseline.py --total-timesteps 6000000 --cycle-steps 1000000 --eval-every 0", 0.01).flags == \
+        ["--total-timesteps", "60000", "--cycle-steps", "10000", "--eval-every", "0"]
+
+
+def test_scale_keeps_budgets_equal_and_scales_the_defaults():
+    """Audit of issue 48: the floor of one rollout raised every budget and cadence to 2048 even at --scale 1, and
+    broke the equal budgets a figure compares when scaling down (4 x 2048 Cascade-SAC steps against 2048 of SAC);
+    a budget the template left at the script's default was not scaled at all (a "quick check" of 2M steps), nor
+    was --eval-every (a curve of two points)."""
+    def one(template, scale):
+        (run,) = sweep.expand(sweep.Args(command=[template], scale=scale))
+        return run
+
+    # at scale 1 the command is the one written, small values included
+    small = "cascade_sac.py --n 2 --k 300 --learning-starts 100 --checkpoint-every 100"
+    assert one(small, 1).flags == small.split()[1:] and one(small, 1).cadence == []
+    # scaled down, the Cascade and its baseline keep the same total budget
+    for preset, labels in (("sac", ("cascade_sac", "sac")), ("ddpg", ("cascade_ddpg", "ddpg")),
+                           ("discrete", ("cascade_discrete", "ppo_discrete"))):
+        runs = {run.label: run for run in sweep.expand(sweep.Args(preset=[preset], scale=0.001))}
+        totals = []
+        for label in labels:
+            flags = runs[label].flags
+            budget = sweep.flag_value(flags, "--k") or sweep.flag_value(flags, "--total-timesteps")
+            totals.append(int(budget) * int(sweep.flag_value(flags, "--n") or 1))
+        assert totals[0] == totals[1], (preset, totals)
+    # a budget, warm-up and evaluation cadence left at the script's default are scaled too
+    flags = one("cascade_sac.py", 0.01).flags
+    assert [sweep.flag_value(flags, f) for f in ("--k", "--learning-starts", "--eval-every")] == ["5000", "50", "1000"]
+    assert sweep.flag_value(one("ppo_baseline_discrete.py", 0.01).flags, "--total-timesteps") == "100000"
+    # a PPO budget below one rollout is refused in one line, naming the scale that works
+    error = error_line(run_script("sweep.py", "--preset", "standard", "--scale", "0.001", "--dry-run"))
+    assert "less than one PPO rollout (2048 steps); use --scale 0.002 or more" in error, error
+    assert int(sweep.flag_value(one("cascade_ppo_discrete.py --k 1000000", 0.001).flags, "--k")) == 1000  # 512
+
+
+def test_bad_templates_and_scales_are_one_line():
+    """Audit of issue 48: --env-id or --seed in a template was silently overridden by the sweep's (the run trained
+    Hopper-v4 in a folder hashed from "Ant-v4"); a budget such as 1e6 and --scale inf ended in tracebacks."""
+    cases = [(["--command", "cascade_sac.py --env-id Ant-v4 --k 1000"], "sets --env-id, which the sweep sets"),
+             (["--command", "cascade_sac.py --seed=5"], "sets --seed, which the sweep sets"),
+             (["--command", "ppo_baseline.py --resume runs/x"], "sets --resume"),
+             (["--command", "cascade_sac.py --k 1e6", "--scale", "0.5"], "--k 1e6 in 'cascade_sac.py --k 1e6' is not"),
+             (["--command", "cascade_sac.py --k=abc", "--scale", "0.5"], "is not a whole number"),
+             (["--preset", "sac", "--scale", "inf"], "--scale must be positive (got inf)"),
+             (["--preset", "sac", "--scale", "nan"], "--scale must be positive (got nan)")]
+    for extra, message in cases:
+        assert message in error_line(run_script("sweep.py", *extra, "--dry-run")), extra
 
 
 def test_scale_works_for_sac_and_ddpg(tmp_path):
@@ -75,11 +125,13 @@ def test_scale_works_for_sac_and_ddpg(tmp_path):
     warm-up now scales with the budget (part of the run's identity: it changes what the run computes), in a
     template or from the script's default, and a scaled sweep runs and finishes."""
     runs = {run.label: run for run in sweep.expand(sweep.Args(preset=["sac-ddpg"], scale=0.01))}
-    assert runs["cascade_sac"].flags == ["--n", "4", "--k", "5000", "--learning-starts", "50"]
-    assert runs["ddpg"].flags == ["--n", "1", "--k", "60000", "--hidden-size", "64", "--learning-starts", "250"]
+    assert runs["cascade_sac"].flags == ["--n", "4", "--k", "5000", "--learning-starts", "50", "--eval-every", "1000"]
+    assert runs["ddpg"].flags == ["--n", "1", "--k", "60000", "--hidden-size", "64", "--learning-starts", "250",
+                                  "--eval-every", "1000"]
     assert runs["sac"].cadence == ["--checkpoint-every", "2048"]
-    (run,) = sweep.expand(sweep.Args(command=["cascade_ddpg.py --k 100000 --learning-starts 1000"], scale=0.1))
-    assert run.flags == ["--k", "10000", "--learning-starts", "100"]
+    (run,) = sweep.expand(sweep.Args(command=["cascade_ddpg.py --k 100000 --learning-starts 1000 --eval-every 0"],
+                                     scale=0.1))
+    assert run.flags == ["--k", "10000", "--learning-starts", "100", "--eval-every", "0"]
     (run,) = sweep.expand(sweep.Args(command=["cascade_sac.py --k 100000"], scale=1))
     assert run.flags == ["--k", "100000"]  # unscaled: the command as written
     proc = subprocess.run([sys.executable, os.path.join(ROOT, "sweep.py"), "--command",
@@ -152,6 +204,9 @@ def test_local_sweep_reports_failure_and_skips_finished_runs(tmp_path):
     assert first.returncode == 1, first.stdout + first.stderr
     assert "2 of 3 runs done" in first.stdout and "1 failed" in first.stdout
     assert "FAILED Hopper-v4__broken__1__" in first.stdout and str(tmp_path / "logs") in first.stdout
+    # the summary carries the run's one-line error, so a grid's failures read without opening each log
+    [failed] = [line for line in first.stdout.splitlines() if line.startswith("  FAILED")]
+    assert "(exit 1): error: --n must be at least 1" in failed, failed
     broken_logs = [f for f in os.listdir(tmp_path / "logs") if "broken" in f]
     assert len(broken_logs) == 1
     assert "--n must be at least 1" in open(tmp_path / "logs" / broken_logs[0]).read()
