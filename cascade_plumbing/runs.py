@@ -124,6 +124,8 @@ def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
     # the run continues in its folder, wherever that is now (moved off a scratch disk that is gone, say)
     saved.track_dir = os.path.dirname(os.path.dirname(os.path.abspath(checkpoint["path"])))
     for name in sorted(given - RESUME_OVERRIDABLE):
+        if name == "track_dir" and os.path.realpath(args.track_dir) == os.path.realpath(saved.track_dir):
+            continue  # the same folder, written another way (the relative path the run was started with)
         if getattr(args, name) != getattr(saved, name):
             fail(f"--{name.replace('_', '-')} {getattr(args, name)} differs from the checkpoint's "
                  f"{getattr(saved, name)}; a resumed run keeps its settings (drop the flag)")
@@ -317,6 +319,11 @@ def check_common_settings(args: Any) -> None:
         check_wandb()
 
 
+# the flags --evaluate uses (each script has those of them it defines; --cuda is accepted: --evaluate runs on the CPU)
+EVALUATE_FIELDS = {"evaluate", "eval_episodes", "seed", "capture_video", "torch_threads", "members", "deterministic",
+                   "eval_deterministic", "quiet", "cuda"}
+
+
 def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], Any]) -> None:
     """--evaluate: the saved model on the env it was trained on. Flags it would ignore are refused in one line; a
     stop (Ctrl-C, SIGTERM) ends in one line too (exit 130 / 143): nothing of a run is at stake."""
@@ -326,6 +333,12 @@ def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], An
     if "env_id" in given:
         fail(f"--env-id has no effect with --evaluate: the saved model is evaluated on the env it was trained on "
              f"(saved in {args.evaluate}); leave --env-id out")
+    ignored = sorted(given - EVALUATE_FIELDS)
+    if ignored:
+        applying = sorted(EVALUATE_FIELDS & set(type(args).__dataclass_fields__) - {"evaluate"})
+        fail(f"--{ignored[0].replace('_', '-')} has no effect with --evaluate: the saved model is evaluated with the "
+             f"settings it was trained with; leave it out (with --evaluate only "
+             f"{', '.join('--' + name.replace('_', '-') for name in applying)} apply)")
     check_seed(args.seed)
     signal.signal(signal.SIGTERM, stop_signal)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:

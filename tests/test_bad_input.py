@@ -150,7 +150,10 @@ def test_evaluate_refuses_flags_it_would_ignore_in_one_line(script, tmp_path):
     saved = str(tmp_path / "run")
     cases = [(["--env-id", "Hopper-v4"], "--env-id has no effect with --evaluate"),
              (["--resume", saved], "--evaluate and --resume exclude each other"),
-             (["--seed", str(2**32)], "--seed must be a non-negative integer below 2**32")]
+             (["--seed", str(2**32)], "--seed must be a non-negative integer below 2**32"),
+             # any training setting was silently ignored too (the audit of issue 48)
+             (["--gamma", "0.9"], "--gamma has no effect with --evaluate"),
+             (["--eval-episodes", "2", "--track-dir", "elsewhere"], "--track-dir has no effect with --evaluate")]
     for flags, message in cases:
         line = error_line_in_process(f"{script}.py", "--evaluate", saved, *flags)
         assert line.startswith(f"error: {message}"), line

@@ -347,3 +347,16 @@ def test_a_run_moved_to_another_folder_resumes_there(tmp_path, monkeypatch, caps
     final = cs.load_checkpoint(str(moved))
     assert final["global_step"] == 600 and final["args"]["track_dir"] == str(moved.parent)
     assert os.listdir(tmp_path / "home") == [moved.name]
+
+
+def test_a_resume_may_repeat_the_relative_track_dir_it_was_started_with(tmp_path, monkeypatch, capsys):
+    """Audit of issue 48: a job script that re-runs its original command with --resume added (`--track-dir r1`,
+    relative) was refused: "--track-dir r1 differs from the checkpoint's /abs/r1", the same folder."""
+    monkeypatch.chdir(tmp_path)
+    train_killed_at(monkeypatch, cd, 141, cd.Args(**TINY, buffer_size=250, track_dir="r1"))
+    run_dir = os.path.relpath(only_run_dir("r1"))
+    code, _, error = cli_in_process(capsys, "cascade_ddpg.py", "--resume", run_dir, "--track-dir", "r1")
+    assert code == 0 and error == "", error
+    assert cd.load_checkpoint(run_dir)["global_step"] == 600
+    code, _, error = cli_in_process(capsys, "cascade_ddpg.py", "--resume", run_dir, "--track-dir", "r2")
+    assert code == 1 and "--track-dir r2 differs from the checkpoint's" in error, error
