@@ -127,7 +127,10 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "") -> 
     if os.path.isdir(path):
         path = os.path.join(path, CHECKPOINT_NAME)
     if not os.path.isfile(path):
-        fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file")
+        beside = ""  # a run folder that lost its checkpoint.pt: the iteration file it can continue from
+        if glob.glob(os.path.join(glob.escape(os.path.dirname(path)), "iteration_*.pt")):
+            beside = intact_beside(path)
+        fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file{beside}")
     try:
         # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)

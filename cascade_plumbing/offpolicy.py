@@ -216,7 +216,7 @@ class OffPolicyRun(RunRecord):
         self.eval_calls = checkpoint["eval_calls"]
         self.replay = ReplayFiles(self.run_dir, buffer)
         if needs_buffer:
-            self.replay.restore(checkpoint["replay"])
+            self.replay.restore(checkpoint["replay"], checkpoint["path"])
         return global_step, iteration, steps_done
 
     # --- acting in the training env ---

@@ -146,8 +146,9 @@ class ReplayFiles:
             if (index + 1) * self.SEGMENT_ROWS <= saved["first"]:
                 os.remove(path)
 
-    def restore(self, saved: dict) -> None:
-        """Refill the (new, empty) buffer with the rows a checkpoint recorded; one line if they are gone or differ."""
+    def restore(self, saved: dict, source: str = "") -> None:
+        """Refill the (new, empty) buffer with the rows a checkpoint recorded (`saved`, of the checkpoint file
+        `source`); one line if they are gone or differ."""
         buffer, first, end = self.buffer, saved["first"], saved["end"]
         buffer.added, buffer.start = end, saved["start"]
         buffer.size, buffer.pos = end - first, (end - buffer.start) % buffer.capacity
@@ -164,7 +165,7 @@ class ReplayFiles:
                 except OSError:
                     raw = b""
                 if len(raw) != count * self.row_bytes:
-                    self.missing(first, end)
+                    self.missing(first, end, source)
                 part[filled : filled + count] = np.frombuffer(raw, dtype=part.dtype).reshape(count, -1)
                 filled, row = filled + count, row + count
         if self.crc32(first, end) != saved["crc32"]:
@@ -172,10 +173,15 @@ class ReplayFiles:
                  "were changed or belong to another run: resume the run from its own folder's checkpoint.pt")
         self.flushed = end
 
-    def missing(self, first: int, end: int) -> None:
-        fail(f"the checkpoint's replay buffer (log rows {first}..{end - 1}) is not in {self.folder}: a checkpoint "
-             "resumes with its run folder's replay/ files, which keep only what the latest checkpoint needs; resume "
-             "the run folder itself (its checkpoint.pt), or start a new run")
+    def missing(self, first: int, end: int, source: str) -> None:
+        rows = f"the checkpoint's replay buffer (log rows {first}..{end - 1}) is not in {self.folder}"
+        if os.path.basename(source) == "checkpoint.pt" and os.path.samefile(os.path.dirname(source),
+                                                                           os.path.dirname(self.folder)):
+            # the run folder's own latest checkpoint: its rows were there when it was written
+            fail(f"{rows}: files of replay/ were deleted or moved since the checkpoint was written; put them back, "
+                 "or start a new run")
+        fail(f"{rows}: a checkpoint resumes with its run folder's replay/ files, which keep only what the latest "
+             "checkpoint needs; resume the run folder itself (its checkpoint.pt), or start a new run")
 
 
 def segment_name(index: int) -> str:

@@ -489,6 +489,12 @@ def test_a_corrupt_checkpoint_names_the_newest_intact_iteration_file(finished_ru
     code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(intact))
     assert code == 0 and message == "", message
     assert cpc.load_checkpoint(str(run_dir))["global_step"] == finished_run["global_step"]  # the run is whole again
+    # a checkpoint.pt that is gone (deleted, not copied back) names the iteration file to continue from as well
+    os.remove(run_dir / "checkpoint.pt")
+    line = error_line_in_process("cascade_ppo_continuous.py", "--resume", str(run_dir))
+    assert line.startswith(f"error: no checkpoint at {run_dir / 'checkpoint.pt'}") and line.endswith(
+        f"is {run_dir / 'iteration_2.pt'} (the end of iteration 2): continue the run from there with: "
+        f"python cascade_ppo_continuous.py --resume {run_dir / 'iteration_2.pt'}"), line
     (run_dir / "checkpoint.pt").write_bytes(b"\0" * 1000)
     for name in os.listdir(run_dir):
         if name.startswith("iteration_"):

@@ -245,6 +245,12 @@ def test_missing_or_changed_replay_rows_are_one_line(tmp_path, capsys):
     path.write_bytes(bytes(raw))
     code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", str(tmp_path / "copy"))
     assert code == 1 and "differ" in error and "\n" not in error, error
+    # the run folder's own checkpoint.pt whose replay/ lost files: not told to resume what it just resumed
+    for name in os.listdir(os.path.join(run_dir, "replay")):
+        os.remove(os.path.join(run_dir, "replay", name))
+    torch.save(checkpoint, os.path.join(run_dir, "checkpoint.pt"))
+    code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", run_dir)
+    assert code == 1 and "files of replay/ were deleted or moved since the checkpoint was written" in error, error
 
 
 def test_the_final_evaluation_is_logged_before_the_final_checkpoint(tmp_path, monkeypatch):
