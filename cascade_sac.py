@@ -612,6 +612,8 @@ def validate(args: Args) -> None:
         fail("--hidden-size and --num-layers must be at least 1")
     if args.policy_frequency < 1 or args.target_network_frequency < 1:
         fail("--policy-frequency and --target-network-frequency must be at least 1")
+    if args.autotune and args.alpha != Args.alpha:
+        fail(f"--alpha {args.alpha} has no effect with --autotune (alpha is learned, starting at 1.0); drop one of them")
     check_replay_settings(args, bounds_needed_because="SAC squashes actions into finite bounds")
 
 

@@ -415,6 +415,9 @@ def resolve(args: Args) -> tuple[bool, bool]:
              f"(num_envs*num_steps = {batch_size}); raise it")
     if args.lr_schedule == "cyclic" and args.cycle_steps < batch_size:
         fail(f"--cycle-steps {args.cycle_steps} is smaller than one rollout batch ({batch_size})")
+    if args.lr_schedule != "cyclic" and args.cycle_steps != Args.cycle_steps:
+        fail(f"--cycle-steps has no effect with --lr-schedule {args.lr_schedule}; add --lr-schedule cyclic or drop "
+             "--cycle-steps")
     return resolve_env(args, continuous_script="ppo_baseline.py")
 
 

@@ -29,6 +29,8 @@ def cases(script):
     if script in PPO:
         out += [(dict(num_minibatches=0), "--num-minibatches and --update-epochs must be at least 1"),
                 (dict(update_epochs=0), "--num-minibatches and --update-epochs must be at least 1")]
+    if script in ("ppo_baseline", "ppo_baseline_discrete"):  # a cycle length without cycles was silently ignored
+        out.append((dict(cycle_steps=500_000), "--cycle-steps has no effect with --lr-schedule global"))
     return out
 
 
