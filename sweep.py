@@ -36,6 +36,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -177,6 +178,7 @@ PRESETS: dict[str, tuple[str, list[tuple[str, str, str]]]] = {
     "sac": ("Fig. 14 as results/ runs it: Cascade-SAC vs SAC (2M steps, eval every 50k); run with --envs Hopper-v4 "
             "HalfCheetah-v4", every_50k(SAC_RUNS)),
 }
+CONTINUOUS_SCRIPTS = (CASCADE, PPO, "cascade_sac.py", "cascade_ddpg.py")  # the discrete scripts take both kinds
 # What --scale multiplies (a 0, "off", stays 0). The budgets: a PPO budget below one rollout is refused, not raised.
 SCALED_BUDGETS = ("--k", "--total-timesteps", "--cycle-steps")
 # the off-policy warm-up (uniform-random steps before updates, after each new net) scales with the budget it is part of
@@ -615,6 +617,24 @@ def main() -> None:
         sys.exit(128 + signum)
 
 
+def check_envs(runs: list[Run]) -> None:
+    """Each env id made once, up front: an unknown one, or one with discrete actions for a continuous script, is one
+    line now instead of a failed run per seed and template later."""
+    import gymnasium as gym
+
+    from cascade_plumbing.envs import probe_spaces
+
+    warnings.filterwarnings("ignore", message=".*is out of date.*")  # the paper's v4 tasks, as in the scripts
+
+    for env_id in dict.fromkeys(run.env_id for run in runs):
+        action_space, _ = probe_spaces(env_id)
+        scripts = sorted({run.script for run in runs if run.env_id == env_id and run.script in CONTINUOUS_SCRIPTS})
+        if scripts and not isinstance(action_space, gym.spaces.Box):
+            fail(f"--envs {env_id} has a {type(action_space).__name__} action space, and {' and '.join(scripts)} "
+                 f"{'needs' if len(scripts) == 1 else 'need'} a Box (continuous) one: drop it from --envs, or sweep "
+                 "the discrete scripts on it")
+
+
 def sweep() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
     if args.workers < 1:
@@ -624,6 +644,7 @@ def sweep() -> None:
             print(f"{name:14s} {what} ({len(entries)} runs per env and seed)")
         return
     runs = expand(args)
+    check_envs(runs)
     sweep_dir = args.sweep_dir or os.path.join("sweeps", "_".join(args.preset) or "custom")
     sweep_dir = os.path.abspath(sweep_dir)
     track_dir = os.path.join(sweep_dir, "runs")

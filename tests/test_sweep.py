@@ -115,7 +115,11 @@ def test_bad_templates_and_scales_are_one_line():
              (["--command", "cascade_sac.py --k 1e6", "--scale", "0.5"], "--k 1e6 in 'cascade_sac.py --k 1e6' is not"),
              (["--command", "cascade_sac.py --k=abc", "--scale", "0.5"], "is not a whole number"),
              (["--preset", "sac", "--scale", "inf"], "--scale must be positive (got inf)"),
-             (["--preset", "sac", "--scale", "nan"], "--scale must be positive (got nan)")]
+             (["--preset", "sac", "--scale", "nan"], "--scale must be positive (got nan)"),
+             # checked up front, not one failed run per seed and template later
+             (["--preset", "sac", "--envs", "CartPole-v1"], "--envs CartPole-v1 has a Discrete action space, and "
+              "cascade_sac.py needs a Box (continuous) one"),
+             (["--preset", "discrete", "--envs", "Hopper-v4", "Hoper-v4"], "unknown env id 'Hoper-v4'")]
     for extra, message in cases:
         assert message in error_line(run_script("sweep.py", *extra, "--dry-run")), extra
 
