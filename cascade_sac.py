@@ -416,7 +416,7 @@ def train(args: Args, checkpoint: dict | None = None,
           on_iteration_start: Callable[[dict], None] | None = None) -> dict:
     """Runs Cascade-SAC (from scratch, or continuing a `checkpoint` exactly); returns the final actor,
     critics, alpha, buffer and run folder. `on_iteration_start` sees the state of each iteration (used by the tests)."""
-    validate(args)
+    validate(args, new_run=checkpoint is None)
     set_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
     device = run_device(args.cuda)
@@ -597,7 +597,7 @@ def make_fast_paths(args: Args, device: torch.device, run: OffPolicyRun | None =
 # ----------------------------------------------------------------------------------------------
 # Wiring to cascade_plumbing: input checks, checkpoints, --evaluate, the command line
 # ----------------------------------------------------------------------------------------------
-def validate(args: Args) -> None:
+def validate(args: Args, new_run: bool = True) -> None:
     """Reject bad input with one clear line before anything is created."""
     check_common_settings(args)
     if not args.policy_lr >= 0:
@@ -612,7 +612,7 @@ def validate(args: Args) -> None:
         fail("--hidden-size and --num-layers must be at least 1")
     if args.policy_frequency < 1 or args.target_network_frequency < 1:
         fail("--policy-frequency and --target-network-frequency must be at least 1")
-    if args.autotune and args.alpha != Args.alpha:
+    if new_run and args.autotune and args.alpha != Args.alpha:  # (a run started before this check resumes)
         fail(f"--alpha {args.alpha} has no effect with --autotune (alpha is learned, starting at 1.0); drop one of them")
     check_replay_settings(args, bounds_needed_because="SAC squashes actions into finite bounds")
 

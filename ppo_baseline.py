@@ -306,7 +306,7 @@ def compute_gae(rewards: np.ndarray, dones: np.ndarray, values: np.ndarray, next
 @torch.no_grad()  # autograd is switched on where a gradient is taken (autograd_gradients, FastPaths checks)
 def train(args: Args, checkpoint: dict | None = None) -> dict:
     """Runs PPO (from scratch, or continuing `checkpoint`); returns the final actor, critic and run folder."""
-    validate(args)
+    validate(args, new_run=checkpoint is None)
     set_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
     device = run_device(args.cuda)
@@ -601,7 +601,7 @@ def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") 
 # ----------------------------------------------------------------------------------------------
 # Input checks, command line: train, resume, or evaluate a saved model
 # ----------------------------------------------------------------------------------------------
-def validate(args: Args) -> None:
+def validate(args: Args, new_run: bool = True) -> None:
     """Reject bad input with one clear line before anything is created."""
     check_common_settings(args)
     batch_size = check_ppo_settings(args)
@@ -612,7 +612,7 @@ def validate(args: Args) -> None:
              f"(num_envs*num_steps = {batch_size}); raise it")
     if args.lr_schedule == "cyclic" and args.cycle_steps < batch_size:
         fail(f"--cycle-steps {args.cycle_steps} is smaller than one rollout batch ({batch_size})")
-    if args.lr_schedule != "cyclic" and args.cycle_steps != Args.cycle_steps:
+    if new_run and args.lr_schedule != "cyclic" and args.cycle_steps != Args.cycle_steps:  # (older runs resume)
         fail(f"--cycle-steps has no effect with --lr-schedule {args.lr_schedule}; add --lr-schedule cyclic or drop "
              "--cycle-steps")
     check_box_env(args.env_id)

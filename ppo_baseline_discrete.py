@@ -274,7 +274,7 @@ def ppo_update(policy: Callable[[torch.Tensor], torch.Tensor], critic: nn.Module
 # ----------------------------------------------------------------------------------------------
 def train(args: Args, checkpoint: dict | None = None) -> dict:
     """Runs PPO (from scratch, or continuing `checkpoint`); returns the final actor, critic and run folder."""
-    discretize, normalize = resolve(args)
+    discretize, normalize = resolve(args, new_run=checkpoint is None)
     say = (lambda *_: None) if args.quiet else print
     set_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
@@ -403,7 +403,7 @@ def evaluate(actor: nn.Module, episodes: EvaluationEpisodes, stats: tuple[np.nda
 CHECKPOINT_FORMAT = "ppo_baseline_discrete/1"
 
 
-def resolve(args: Args) -> tuple[bool, bool]:
+def resolve(args: Args, new_run: bool = True) -> tuple[bool, bool]:
     """Probe the env and reject bad input with one clear line before anything is created.
     Returns (discretize, normalize) as they apply to this env."""
     check_common_settings(args)
@@ -415,7 +415,7 @@ def resolve(args: Args) -> tuple[bool, bool]:
              f"(num_envs*num_steps = {batch_size}); raise it")
     if args.lr_schedule == "cyclic" and args.cycle_steps < batch_size:
         fail(f"--cycle-steps {args.cycle_steps} is smaller than one rollout batch ({batch_size})")
-    if args.lr_schedule != "cyclic" and args.cycle_steps != Args.cycle_steps:
+    if new_run and args.lr_schedule != "cyclic" and args.cycle_steps != Args.cycle_steps:  # (older runs resume)
         fail(f"--cycle-steps has no effect with --lr-schedule {args.lr_schedule}; add --lr-schedule cyclic or drop "
              "--cycle-steps")
     return resolve_env(args, continuous_script="ppo_baseline.py")

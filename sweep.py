@@ -249,12 +249,19 @@ def tracking_flags(args: Args, sweep_dir: str) -> list[str]:
     return flags + (["--wandb-entity", args.wandb_entity] if args.wandb_entity else [])
 
 
+def flag_name(flag: str) -> str:
+    """`--total_timesteps=5` -> `--total-timesteps`: the flag a token sets, spelled as the scripts' --help spells it
+    (tyro accepts both spellings)."""
+    name = flag.partition("=")[0]
+    return "--" + name[2:].replace("_", "-") if name.startswith("--") else name
+
+
 def flag_value(flags: list[str], name: str) -> str | None:
     """The value a command's flags give `name` (`--k 100` or `--k=100`; the last one wins, as in the scripts)."""
     value = None
     for i, flag in enumerate(flags):
-        key, eq, rest = flag.partition("=")
-        if key == name:
+        if flag_name(flag) == name:
+            eq, rest = flag.partition("=")[1:]
             value = rest if eq else (flags[i + 1] if i + 1 < len(flags) else None)
     return value
 
@@ -281,78 +288,77 @@ def script_default(script: str, field: str) -> int | None:
 
 def rollout_steps(script: str, flags: list[str]) -> int | None:
     """The env steps of one PPO rollout of `script` run with `flags` (--num-envs x --num-steps, the continuous
-    scripts' default 2048 // num_envs each), or None for the off-policy scripts."""
+    scripts' default 2048 // num_envs each), or None for the off-policy scripts (and for values the script itself
+    will refuse)."""
     if script_default(script, "num_minibatches") is None:
         return None
-    num_envs = int(flag_value(flags, "--num-envs") or script_default(script, "num_envs") or 1)
-    num_steps = int(flag_value(flags, "--num-steps") or script_default(script, "num_steps") or max(2048 // num_envs, 1))
-    return num_envs * num_steps
+    try:
+        num_envs = int(flag_value(flags, "--num-envs") or script_default(script, "num_envs") or 1)
+        if num_envs < 1:
+            return None
+        num_steps = int(flag_value(flags, "--num-steps") or script_default(script, "num_steps") or max(2048 // num_envs, 1))
+    except ValueError:
+        return None
+    return num_envs * num_steps if num_steps >= 1 else None
 
 
-def scale_template(script: str, flags: list[str], scale: float, template: str) -> tuple[list[str], list[str]]:
-    """A template's flags at `scale`, and the checkpoint cadence to add: (flags, cadence).
+def scale_template(script: str, flags: list[str], scale: float, template: str) -> tuple[list[str], list[str], float]:
+    """A template's flags at `scale`, the checkpoint cadence to add, and the smallest scale its PPO budgets allow:
+    (flags, cadence, smallest scale).
 
     At scale 1 the flags are the command as written. Otherwise every step count is multiplied by `scale`, where the
     template gives it and where it leaves the script's default (then added, scaled): the budgets (SCALED_BUDGETS),
     the off-policy warm-up and the evaluation cadence (part of the run's identity: they change what it computes or
-    logs), and the checkpoint cadence (not: `cadence`, added after the identity flags). A scaled PPO budget smaller
-    than one rollout is refused (raising it would break the equal budgets a figure compares); a 0 (off) stays 0."""
+    logs), and the checkpoint cadence the sweep adds where the template leaves it (not part of the identity). A 0
+    (off) stays 0. The caller refuses a scale below the smallest one (a PPO budget below one rollout: raising it
+    would break the equal budgets a figure compares)."""
     if scale == 1:
-        return list(flags), []
+        return list(flags), [], 0.0
     out = list(flags)
     for field_name, flag in SCALED_DEFAULTS:
         default = script_default(script, field_name)
         if isinstance(default, int) and flag_value(out, flag) is None:
             out += [flag, str(default)]
     rollout = rollout_steps(script, out)
+    smallest = 0.0
 
     def scaled(name: str, value: str) -> str:
+        nonlocal smallest
         try:
             steps = int(value)
         except ValueError:
             fail(f"{name} {value} in '{template}' is not a whole number of steps; write it as one, e.g. {name} 1000000")
         new = int(round(steps * scale))
-        if steps == 0 or name == WARMUP_FLAG:
+        if steps <= 0 or name == WARMUP_FLAG:
             return str(new)
-        if name == EVAL_FLAG:
-            return str(max(new, MIN_EVAL_EVERY))
-        if name in SCALED_BUDGETS and rollout and new < rollout:
-            fail(f"--scale {scale:g} makes {name} {steps} of '{template}' {new} steps, less than one PPO rollout "
-                 f"({rollout} steps); use --scale {rollout / steps:.2g} or more")
+        if name == EVAL_FLAG:  # a floor, but never above what the template asked for
+            return str(max(new, min(MIN_EVAL_EVERY, steps)))
+        if name == CADENCE_FLAG:
+            return str(max(new, min(MIN_CADENCE, steps)))
+        if rollout:
+            smallest = max(smallest, rollout / steps)
         return str(new)
 
     for i, flag in enumerate(out):
-        name, eq, value = flag.partition("=")
+        name, eq, value = flag_name(flag), *flag.partition("=")[1:]
         if name not in (*SCALED_BUDGETS, WARMUP_FLAG, EVAL_FLAG, CADENCE_FLAG):
             continue
-        if name == CADENCE_FLAG:
-            value = value if eq else (out[i + 1] if i + 1 < len(out) else "")
-            new = scaled_cadence(value, scale, template)
-        elif eq:
-            new = scaled(name, value)
-        elif i + 1 < len(out):
-            new = scaled(name, out[i + 1])
-        else:
-            continue
         if eq:
-            out[i] = f"{name}={new}"
+            out[i] = f"{flag.partition('=')[0]}={scaled(name, value)}"
         elif i + 1 < len(out):
-            out[i + 1] = new
-    default = script_default(script, "checkpoint_every")
+            out[i + 1] = scaled(name, out[i + 1])
     cadence = []
+    default = script_default(script, "checkpoint_every")
     if default and flag_value(out, CADENCE_FLAG) is None:
         # a scaled run left at the script's default would write no checkpoint before its end
-        cadence = [CADENCE_FLAG, scaled_cadence(str(default), scale, template)]
-    return out, cadence
+        cadence = [CADENCE_FLAG, scaled(CADENCE_FLAG, str(default))]
+    return out, cadence, smallest
 
 
-def scaled_cadence(value: str, scale: float, template: str) -> str:
-    """--checkpoint-every times `scale`, never below MIN_CADENCE; 0 (at iteration ends only) stays 0."""
-    try:
-        steps = int(value)
-    except ValueError:
-        fail(f"{CADENCE_FLAG} {value} in '{template}' is not a whole number of steps")
-    return str(max(int(round(steps * scale)), MIN_CADENCE)) if steps else "0"
+def smallest_scale_that_works(needed: float) -> float:
+    """`needed` rounded up to two significant figures (0.002048 -> 0.0021): a scale to name in a message."""
+    unit = 10 ** (math.floor(math.log10(needed)) - 1)
+    return math.ceil(needed / unit - 1e-9) * unit
 
 
 def expand(args: Args) -> list[Run]:
@@ -371,22 +377,33 @@ def expand(args: Args) -> list[Run]:
         if not parts or not parts[0].endswith(".py") or not os.path.isfile(os.path.join(ROOT, parts[0])):
             fail(f"unknown script in --command '{template}': expected one of our scripts, e.g. {CASCADE}")
         flags, label = parts[1:], f"{parts[0][:-3]}_{i + 1}"
-        if "--exp-name" in flags:  # the sweep sets --exp-name itself: it becomes the template's label
-            at = flags.index("--exp-name")
-            label, flags = flags[at + 1], flags[:at] + flags[at + 2 :]
+        names = [flag_name(flag) for flag in flags]
+        if "--exp-name" in names:  # the sweep sets --exp-name itself: it becomes the template's label
+            at = names.index("--exp-name")
+            if "=" in flags[at]:
+                label, flags = flags[at].partition("=")[2], flags[:at] + flags[at + 1 :]
+            else:
+                label, flags = flags[at + 1], flags[:at] + flags[at + 2 :]
         templates.append((label, parts[0], flags))
     if not (math.isfinite(args.scale) and args.scale > 0):
         fail(f"--scale must be positive (got {args.scale}); e.g. 0.01 for a quick check, 1 for the paper's budgets")
     if not templates:
         fail("nothing to run: give --preset NAME (see --list-presets) and/or --command TEMPLATE")
-    scaled = []
+    scaled, needed = [], []
     for label, script, flags in templates:
         template = shlex.join([script, *flags])
         for flag in flags:
-            if flag.partition("=")[0] in SWEEP_FLAGS:
-                fail(f"'{template}' sets {flag.partition('=')[0]}, which the sweep sets for each run itself: give "
+            if flag_name(flag) in SWEEP_FLAGS:
+                fail(f"'{template}' sets {flag_name(flag)}, which the sweep sets for each run itself: give "
                      "env ids with --envs and seeds with --seeds, and the sweep folder with --sweep-dir")
-        scaled.append((label, script, *scale_template(script, flags, args.scale, template)))
+        template_flags, cadence, smallest = scale_template(script, flags, args.scale, template)
+        scaled.append((label, script, template_flags, cadence))
+        needed.append((smallest, template))
+    smallest, template = max(needed)
+    if args.scale < 1 and smallest > args.scale:
+        at_least = smallest_scale_that_works(smallest)
+        fail(f"--scale {args.scale:g} makes a budget of '{template}' less than one PPO rollout; use --scale "
+             f"{at_least:.2g} or more")
     runs, seen = [], set()
     # env by env, seed by seed: the runs one figure panel compares finish together
     for env_id in args.envs:
@@ -628,7 +645,8 @@ def check_envs(runs: list[Run]) -> None:
 
     for env_id in dict.fromkeys(run.env_id for run in runs):
         action_space, _ = probe_spaces(env_id)
-        scripts = sorted({run.script for run in runs if run.env_id == env_id and run.script in CONTINUOUS_SCRIPTS})
+        scripts = sorted({run.script for run in runs
+                          if run.env_id == env_id and os.path.normpath(run.script) in CONTINUOUS_SCRIPTS})
         if scripts and not isinstance(action_space, gym.spaces.Box):
             fail(f"--envs {env_id} has a {type(action_space).__name__} action space, and {' and '.join(scripts)} "
                  f"{'needs' if len(scripts) == 1 else 'need'} a Box (continuous) one: drop it from --envs, or sweep "

@@ -175,10 +175,10 @@ class ReplayFiles:
 
     def missing(self, first: int, end: int, source: str) -> None:
         rows = f"the checkpoint's replay buffer (log rows {first}..{end - 1}) is not in {self.folder}"
-        if os.path.basename(source) == "checkpoint.pt" and os.path.samefile(os.path.dirname(source),
-                                                                           os.path.dirname(self.folder)):
-            # the run folder's own latest checkpoint: its rows were there when it was written
-            fail(f"{rows}: files of replay/ were deleted or moved since the checkpoint was written; put them back, "
+        if os.path.basename(source) == "checkpoint.pt":
+            # a run folder's latest checkpoint: its rows were beside it when it was written
+            fail(f"{rows}: files of replay/ were deleted or moved since the checkpoint was written, or the checkpoint "
+                 "was copied out of its run folder without them; resume the original run folder, put the files back, "
                  "or start a new run")
         fail(f"{rows}: a checkpoint resumes with its run folder's replay/ files, which keep only what the latest "
              "checkpoint needs; resume the run folder itself (its checkpoint.pt), or start a new run")

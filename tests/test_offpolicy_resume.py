@@ -173,7 +173,7 @@ def test_a_corrupt_checkpoint_names_an_iteration_file_only_if_it_can_continue(ke
                               "rows it needs (--keep-buffer) were deleted as the run moved on; evaluate it with: "
                               f"python cascade_sac.py --evaluate {iteration_1}, or start a new run"), error
         code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", iteration_1)
-        assert code == 1 and "is not in" in error, error  # what the line spares the user
+        assert code == 1 and "resume the run folder itself" in error, error  # what the line spares the user
     else:
         assert error.endswith(f"continue the run from there with: python cascade_sac.py --resume {iteration_1}")
         code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", iteration_1)
@@ -238,6 +238,7 @@ def test_missing_or_changed_replay_rows_are_one_line(tmp_path, capsys):
     torch.save(checkpoint, tmp_path / "copy" / "checkpoint.pt")
     code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", str(tmp_path / "copy"))
     assert code == 1 and "replay buffer" in error and "is not in" in error and "\n" not in error, error
+    assert "copied out of its run folder without them; resume the original run folder" in error, error
     shutil.copytree(os.path.join(run_dir, "replay"), tmp_path / "copy" / "replay")
     path = tmp_path / "copy" / "replay" / sorted(os.listdir(tmp_path / "copy" / "replay"))[-1]
     raw = bytearray(path.read_bytes())

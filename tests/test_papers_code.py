@@ -243,7 +243,8 @@ def test_cyclic_baseline_restarts_adam_every_cycle(num_envs, tmp_path):
     checkpoint = pb.load_checkpoint(result["run_dir"])
     steps = {int(s["step"]) for s in checkpoint["optimizer"]["state"].values()}
     assert steps == {4 * 2 * 4}  # the last cycle's 4 updates x 2 epochs x 4 minibatches, not both cycles' 64
-    global_args = pb.Args(**{**vars(args), "lr_schedule": "global", "track_dir": str(tmp_path / "global")})
+    global_args = pb.Args(**{**vars(args), "lr_schedule": "global", "cycle_steps": pb.Args.cycle_steps,
+                             "track_dir": str(tmp_path / "global")})
     checkpoint = pb.load_checkpoint(pb.train(global_args)["run_dir"])
     assert {int(s["step"]) for s in checkpoint["optimizer"]["state"].values()} == {8 * 2 * 4}
 

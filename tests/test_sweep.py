@@ -100,10 +100,26 @@ def test_scale_keeps_budgets_equal_and_scales_the_defaults():
     flags = one("cascade_sac.py", 0.01).flags
     assert [sweep.flag_value(flags, f) for f in ("--k", "--learning-starts", "--eval-every")] == ["5000", "50", "1000"]
     assert sweep.flag_value(one("ppo_baseline_discrete.py", 0.01).flags, "--total-timesteps") == "100000"
-    # a PPO budget below one rollout is refused in one line, naming the scale that works
-    error = error_line(run_script("sweep.py", "--preset", "standard", "--scale", "0.001", "--dry-run"))
-    assert "less than one PPO rollout (2048 steps); use --scale 0.002 or more" in error, error
+    # a PPO budget below one rollout is refused in one line, naming a scale that works for every template (the
+    # largest need, rounded up: 0.002 was named, and refused in turn)
+    for preset, scale, works in (("standard", "0.001", "0.0021"), ("k-sweep", "0.0005", "0.0028")):
+        error = error_line(run_script("sweep.py", "--preset", preset, "--scale", scale, "--dry-run"))
+        assert error.endswith(f"less than one PPO rollout; use --scale {works} or more"), error
+        assert run_script("sweep.py", "--preset", preset, "--scale", works, "--dry-run").returncode == 0
     assert int(sweep.flag_value(one("cascade_ppo_discrete.py --k 1000000", 0.001).flags, "--k")) == 1000  # 512
+    # the floors never raise a cadence above the template's own
+    assert sweep.flag_value(one("cascade_sac.py --eval-every 500 --checkpoint-every 700", 0.5).flags,
+                            "--eval-every") == "500"
+    assert one("cascade_sac.py --eval-every 500 --checkpoint-every 700", 0.5).flags[3] == "700"
+    # tyro's other spelling (--total_timesteps) is the same flag: scaled, not overridden by a scaled default
+    flags = one("ppo_baseline.py --total_timesteps 2000000", 0.01).flags
+    assert flags[:2] == ["--total_timesteps", "20000"] and sweep.flag_value(flags, "--total-timesteps") == "20000"
+    assert "--total-timesteps" not in flags
+    # --exp-name=NAME is the label too (it took the next flag as the label)
+    assert one("cascade_sac.py --exp-name=mine --k 1000", 1).label == "mine"
+    assert one("cascade_sac.py --exp-name=mine --k 1000", 1).flags == ["--k", "1000"]
+    # a --num-envs the script will refuse is left to the script (no traceback here)
+    assert one("ppo_baseline.py --num-envs 0", 0.5).flags[:2] == ["--num-envs", "0"]
 
 
 def test_bad_templates_and_scales_are_one_line():
@@ -111,6 +127,7 @@ def test_bad_templates_and_scales_are_one_line():
     Hopper-v4 in a folder hashed from "Ant-v4"); a budget such as 1e6 and --scale inf ended in tracebacks."""
     cases = [(["--command", "cascade_sac.py --env-id Ant-v4 --k 1000"], "sets --env-id, which the sweep sets"),
              (["--command", "cascade_sac.py --seed=5"], "sets --seed, which the sweep sets"),
+             (["--command", "cascade_sac.py --env_id Ant-v4"], "sets --env-id, which the sweep sets"),
              (["--command", "ppo_baseline.py --resume runs/x"], "sets --resume"),
              (["--command", "cascade_sac.py --k 1e6", "--scale", "0.5"], "--k 1e6 in 'cascade_sac.py --k 1e6' is not"),
              (["--command", "cascade_sac.py --k=abc", "--scale", "0.5"], "is not a whole number"),
@@ -119,6 +136,7 @@ def test_bad_templates_and_scales_are_one_line():
              # checked up front, not one failed run per seed and template later
              (["--preset", "sac", "--envs", "CartPole-v1"], "--envs CartPole-v1 has a Discrete action space, and "
               "cascade_sac.py needs a Box (continuous) one"),
+             (["--command", "./cascade_ddpg.py", "--envs", "CartPole-v1"], "cascade_ddpg.py needs a Box"),
              (["--preset", "discrete", "--envs", "Hopper-v4", "Hoper-v4"], "unknown env id 'Hoper-v4'")]
     for extra, message in cases:
         assert message in error_line(run_script("sweep.py", *extra, "--dry-run")), extra
