@@ -190,6 +190,8 @@ MIN_CADENCE = 2048  # a checkpoint costs ~0.1-0.2 s: not more often than this
 # a scaled template that leaves one of these at the script's default gets the default, scaled: (Args field, flag)
 SCALED_DEFAULTS = (("k", "--k"), ("total_timesteps", "--total-timesteps"), ("learning_starts", WARMUP_FLAG),
                    ("eval_every", EVAL_FLAG))
+# ... and this one where the template turns it on: the LR cycle of `--lr-schedule cyclic` (Fig. 3) divides the budget
+CYCLE_DEFAULT = ("cycle_steps", "--cycle-steps", "--lr-schedule", "cyclic")
 # the sweep sets these for each run itself
 SWEEP_FLAGS = ("--env-id", "--seed", "--track-dir", "--resume", "--evaluate")
 
@@ -308,14 +310,16 @@ def scale_template(script: str, flags: list[str], scale: float, template: str) -
 
     At scale 1 the flags are the command as written. Otherwise every step count is multiplied by `scale`, where the
     template gives it and where it leaves the script's default (then added, scaled): the budgets (SCALED_BUDGETS),
-    the off-policy warm-up and the evaluation cadence (part of the run's identity: they change what it computes or
+    the off-policy warm-up, the evaluation cadence and, under `--lr-schedule cyclic`, the LR cycle (part of the run's identity: they change what it computes or
     logs), and the checkpoint cadence the sweep adds where the template leaves it (not part of the identity). A 0
     (off) stays 0. The caller refuses a scale below the smallest one (a PPO budget below one rollout: raising it
     would break the equal budgets a figure compares)."""
     if scale == 1:
         return list(flags), [], 0.0
     out = list(flags)
-    for field_name, flag in SCALED_DEFAULTS:
+    field_name, flag, switch, on = CYCLE_DEFAULT
+    defaults = [*SCALED_DEFAULTS, *([(field_name, flag)] if flag_value(out, switch) == on else [])]
+    for field_name, flag in defaults:
         default = script_default(script, field_name)
         if isinstance(default, int) and flag_value(out, flag) is None:
             out += [flag, str(default)]

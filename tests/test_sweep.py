@@ -72,6 +72,14 @@ def test_scale_scales_the_checkpoint_cadence():
     # Fig. 3's LR cycle shrinks with the run it divides (6 cycles either way)
     assert one("ppo_baseline.py --total-timesteps 6000000 --cycle-steps 1000000 --eval-every 0", 0.01).flags == \
         ["--total-timesteps", "60000", "--cycle-steps", "10000", "--eval-every", "0"]
+    # ... also where the template leaves the cycle at its default (it stayed 1M: a 60k-step run that never cycled);
+    # without the cyclic schedule no --cycle-steps is added (the script refuses one there)
+    for template in ("ppo_baseline.py --lr-schedule cyclic --eval-every 0",
+                     "ppo_baseline.py --lr-schedule=cyclic --eval-every 0"):
+        assert sweep.flag_value(one(template, 0.01).flags, "--cycle-steps") == "10000", template
+    assert sweep.flag_value(one("ppo_baseline.py --eval-every 0", 0.01).flags, "--cycle-steps") is None
+    assert run_script("sweep.py", "--command", "ppo_baseline.py --lr-schedule cyclic", "--envs", "Pendulum-v1",
+                      "--scale", "0.01", "--dry-run").returncode == 0
 
 
 def test_scale_keeps_budgets_equal_and_scales_the_defaults():
