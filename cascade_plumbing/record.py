@@ -19,7 +19,16 @@ import torch.nn as nn
 from .checkpoints import CHECKPOINT_NAME, atomic_copy, non_finite_advice, repair_iteration_files, save_checkpoint
 from .envs import make_render_env
 from .errors import fail
-from .runs import OPEN_WRITERS, RUN_DIR, claim_run_dir, lock_run_dir, rng_states, set_rng_states, unlock_run_dir
+from .runs import (
+    OPEN_WRITERS,
+    RUN_DIR,
+    claim_run_dir,
+    lock_run_dir,
+    remove_unresumable_run,
+    rng_states,
+    set_rng_states,
+    unlock_run_dir,
+)
 from .tracking import VIDEO_ROOT, Progress, finish_wandb, finished_videos, log_new_videos, start_wandb
 
 
@@ -64,7 +73,13 @@ class RunRecord:
         # kept through an untracked resume, so that a later --track continues the same W&B run
         self.wandb_run_id = None if checkpoint is None else checkpoint.get("wandb_run_id")
         if args.track:  # before the SummaryWriter: W&B mirrors the TensorBoard logs of writers made after it
-            self.wandb_run_id = start_wandb(args, name, self.run_dir, self.wandb_run_id)
+            try:
+                self.wandb_run_id = start_wandb(args, name, self.run_dir, self.wandb_run_id)
+            except SystemExit:  # W&B did not start (no answer from its server): a new run leaves no empty folder
+                if checkpoint is None:
+                    unlock_run_dir(self.run_dir)
+                    remove_unresumable_run(self.run_dir)
+                raise
         if checkpoint is None:
             self.writer = SummaryWriter(self.run_dir)
             self.writer.add_text(

@@ -251,6 +251,19 @@ def test_online_without_a_login_is_one_line(tmp_path):
     assert not (tmp_path / "runs").exists() and not (tmp_path / "wandb").exists()
 
 
+def test_a_server_that_does_not_answer_is_one_line_and_leaves_no_run_folder(tmp_path):
+    """A W&B server that does not answer (here a closed port on this machine): one line after wandb.init's timeout,
+    and no empty run folder left behind (one holding only run.lock was left)."""
+    env = offline_env(tmp_path, WANDB_MODE="online", WANDB_BASE_URL="http://127.0.0.1:9", WANDB_API_KEY="a" * 40,
+                      WANDB_INIT_TIMEOUT="1")
+    proc = run("cascade_ppo_continuous.py", tmp_path, *cli(TINY), "--track", "--track-dir", tmp_path / "runs",
+               env=env, timeout=300)
+    assert proc.returncode != 0
+    assert any(line.startswith("error: --track: cannot start the W&B run") for line in proc.stderr.splitlines()), \
+        proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and os.listdir(tmp_path / "runs") == []
+
+
 @pytest.mark.parametrize("script", ["cascade_ppo_continuous.py", "cascade_sac.py", *sorted(OTHERS)])
 def test_capture_video_without_opengl_is_one_line_at_start(script, tmp_path):
     env = {k: v for k, v in offline_env(tmp_path).items()
