@@ -294,14 +294,13 @@ def test_ppo_loss_matches_the_reference(module, settings):
     loss, parts = module.ppo_loss(*inputs, args)
     ref_loss, ref_pg, ref_v, ref_entropy = reference_ppo_loss(*inputs, args)
     # the data reaches every branch: clipped ratios above and below, clipped values chosen by the max
-    ratio = torch.exp(parts["logratio"]) if "logratio" in parts else None
-    if ratio is not None:
-        assert (ratio > 1 + args.clip_coef).any() and (ratio < 1 - args.clip_coef).any()
+    assert {"logratio", "entropy", "policy_loss", "value_loss"} <= parts.keys()  # the parts checked below, always
+    ratio = torch.exp(parts["logratio"])
+    assert (ratio > 1 + args.clip_coef).any() and (ratio < 1 - args.clip_coef).any()
     torch.testing.assert_close(loss, ref_loss, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(parts["policy_loss"], ref_pg, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(parts["value_loss"], ref_v, rtol=1e-10, atol=1e-12)
-    if "entropy" in parts:
-        torch.testing.assert_close(parts["entropy"], ref_entropy, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(parts["entropy"], ref_entropy, rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize("autograd", [False, True], ids=["fast_paths", "autograd"])

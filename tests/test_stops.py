@@ -31,11 +31,6 @@ EVAL_STEPS = [0, 1000, 2000, 2048]
 INLINE = "--no-eval-in-worker"
 
 
-def uses_run_main(script):
-    with open(os.path.join(ROOT, script)) as f:
-        return "run_main(" in f.read()
-
-
 def start(script, *args):
     """A script or the sweep in the background, as a user starts it (Ctrl-C reaches it)."""
     return subprocess.Popen([sys.executable, os.path.join(ROOT, script), *map(str, args)], cwd=ROOT, text=True,
@@ -69,8 +64,6 @@ def eval_steps(run_dir):
 @pytest.mark.parametrize("script", [FLAGSHIP, BASELINE])
 def test_resuming_a_finished_run_adds_nothing(tmp_path, script, capsys):
     """Issue 28.1: `--resume` of a finished run evaluated its final step again (0, 3000, 6000, 8192, 8192)."""
-    if not uses_run_main(script):
-        pytest.skip(f"{script} does not use cascade_plumbing.runs.run_main yet")
     first = run_script(script, *TINY[script], "--track-dir", tmp_path)
     assert first.returncode == 0, first.stderr[-2000:]
     run_dir = only_run_dir(tmp_path)

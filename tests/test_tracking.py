@@ -12,13 +12,12 @@ import time
 
 import pytest
 import torch
+import wandb  # noqa: F401  (pinned in requirements.txt: a broken install fails here, it does not skip the file)
 
 import cascade_ppo_continuous as cpc
 import cascade_sac as cs
 import sweep
 from helpers import ROOT, ctrl_c_reaches_child, error_line, read_scalars
-
-pytest.importorskip("wandb")
 
 TINY = dict(env_id="Hopper-v4", n=2, k=1024, num_steps=256, num_minibatches=4, update_epochs=1, eval_every=512,
             eval_episodes=1, eval_in_worker=False, checkpoint_every=0, quiet=True)

@@ -1,6 +1,8 @@
 """The training loops as a user runs them: iterations, logging, bad input, learning."""
 
 
+import os
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -165,14 +167,21 @@ def test_help_documents_every_flag(capsys):
 def test_ablations_run(tmp_path, overrides):
     args = cpc.Args(env_id="Hopper-v4", n=2, k=256, eval_every=0, track_dir=str(tmp_path), **TINY, **overrides)
     result = cpc.train(args)
-    assert result["actor"].size == 2
-    scalars = read_scalars(result["run_dir"])
+    actor, run_dir = result["actor"], result["run_dir"]
+    assert actor.size == 2
+    scalars = read_scalars(run_dir)
     lrs = [v for _, v in scalars["charts/learning_rate"]]
     np.testing.assert_allclose(lrs, [3e-4, 1.5e-4] if args.lr_schedule == "global" else [3e-4, 3e-4], rtol=1e-5)
-    if not args.normalize:
-        envs = cpc.make_vector_env(args)
-        assert cpc.obs_statistics(envs) is None
-        envs.close()
+    # each ablation does what it says: the net's shape, the stack's size from the start, net 1 kept, no statistics
+    hidden = [(11, args.hidden_size)] + [(args.hidden_size, args.hidden_size)] * (args.num_layers - 1)
+    assert [tuple(w.shape) for w in actor.hidden_weights] == [(2, *shape) for shape in hidden]
+    assert scalars["cascade/size"][0][1] == (2 if args.start_full else 1)
+    checkpoint = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)
+    assert (checkpoint["obs_stats"] is None) == (not args.normalize)
+    first = torch.load(os.path.join(run_dir, "iteration_1.pt"), weights_only=False)["actor"]
+    net_1_kept = [torch.equal(param.detach()[0], first[name][0])
+                  for name, param, first_net in actor.base_net_parameters() if first_net == 0]
+    assert all(net_1_kept) if args.freeze_previous else not any(net_1_kept)
 
 
 @pytest.mark.slow
