@@ -12,6 +12,7 @@ import torch
 import cascade_ppo_discrete as cpd
 import learning_checks
 import ppo_baseline_discrete as pbd
+from cascade_plumbing.discrete import EvaluationEpisodes
 from helpers import (
     cli_in_process,
     copy_checkpoint_when,
@@ -354,6 +355,37 @@ def test_baseline_checkpoint_resume_and_evaluate(tmp_path, capsys):
     assert code == 0 and "over 2 stochastic episodes" in out and " ± " in out, error
     assert "--hidden-size 16 differs" in error_line_in_process("ppo_baseline_discrete.py", "--resume", full["run_dir"],
                                                                "--hidden-size", "16")
+
+
+@pytest.mark.parametrize("module", [cpd, pbd], ids=["cascade", "baseline"])
+def test_evaluate_gives_the_saved_policy_s_returns(module, tmp_path):
+    """--evaluate's returns are those of the saved actor with its saved observation statistics, evaluated directly
+    (audit: only its printed wording was checked, and CartPole has no statistics to lose). Discretized Hopper-v4,
+    normalized: the statistics change every observation the policy sees."""
+    budget = dict(n=2, k=512) if module is cpd else dict(total_timesteps=1024)
+    args = module.Args(env_id="Hopper-v4", eval_every=0, normalize=True, track_dir=str(tmp_path), quiet=True,
+                       **budget, **TINY)
+    checkpoint = module.load_checkpoint(module.train(args)["run_dir"])
+    # a policy this young barely depends on what it sees: sharpen its logits so that the statistics show
+    head = "logits_weight" if module is cpd else "4.weight"
+    checkpoint["actor"][head] = checkpoint["actor"][head] * 300
+    saved = str(tmp_path / "sharpened.pt")
+    torch.save({key: value for key, value in checkpoint.items() if key != "path"}, saved)
+    actor, stats = module.actor_from_checkpoint(checkpoint), checkpoint["obs_stats"]
+    assert stats is not None
+
+    def direct(deterministic, stats):
+        episodes = EvaluationEpisodes("Hopper-v4", 3, 7, checkpoint["discretize"])
+        out = module.evaluate(actor, episodes, stats, 0, deterministic)
+        episodes.close()
+        return out[0] if isinstance(out, tuple) else out
+
+    for deterministic in (False, True):
+        got = module.evaluate_saved(module.Args(evaluate=saved, eval_episodes=3, seed=7, deterministic=deterministic,
+                                                quiet=True))
+        np.testing.assert_array_equal(got, direct(deterministic, stats))
+        assert not np.allclose(got, direct(deterministic, None)), "the saved statistics made no difference"
+    assert not np.allclose(direct(False, stats), direct(True, stats)), "sampling and the argmax acted alike"
 
 
 @pytest.mark.slow

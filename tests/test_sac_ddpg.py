@@ -11,6 +11,7 @@ import torch
 import cascade_ddpg as cd
 import cascade_sac as cs
 import learning_checks
+from cascade_plumbing.offpolicy import Evaluator
 from cascade_plumbing.replay import buffer_capacity, store_transition
 from helpers import cli_in_process, error_line, only_run_dir, read_scalars, run_script
 
@@ -592,6 +593,19 @@ def test_hopper_smoke_run_scalars_checkpoints_resume_and_evaluate(algo, tmp_path
     code, out, error = cli_in_process(capsys, script, "--evaluate", run_dir, "--eval-episodes", "2", "--members")
     assert code == 0, error
     assert "2 base net(s), step 800" in out and "net 2 alone" in out
+    # its returns are the saved actor's, evaluated directly, and each net's alone in turn (audit: only the wording
+    # was checked), with the exploration as evaluation during training has it, or none with --eval-deterministic
+    actor = mod.actor_from_checkpoint(final)
+    for deterministic in (False, True):
+        got = mod.evaluate_saved(mod.Args(evaluate=run_dir, eval_episodes=3, seed=7, members=True,
+                                          eval_deterministic=deterministic, quiet=True))
+        explore = deterministic if algo == "sac" else 0.0 if deterministic else final["args"]["exploration_noise"]
+        evaluator = Evaluator("Hopper-v4", 3, 7, final["args"]["obs_reward_clip"])
+        np.testing.assert_array_equal(got["returns"], evaluator(mod.full_policy(actor, explore))[0])
+        for net in range(2):
+            np.testing.assert_array_equal(got["members"][net], evaluator(mod.member_policy(actor, net, explore))[0])
+        evaluator.close()
+        assert not np.array_equal(got["members"][0], got["members"][1])
     code, out, error = cli_in_process(capsys, script, "--resume", run_dir)
     assert code == 0 and "nothing to resume" in out, error
 
