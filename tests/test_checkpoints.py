@@ -145,18 +145,29 @@ def test_resume_mid_iteration_gives_identical_parameters(tmp_path):
 
 @pytest.mark.parametrize("script", ["cascade_ppo_continuous", "cascade_ppo_discrete"])
 def test_freeze_previous_survives_a_resume(script, tmp_path):
-    """--freeze-previous: the actor a checkpoint restores keeps the older nets frozen (a resume mid-iteration
-    must not train them); both checkpoints of a 2-net run, with the frozen count of their iteration."""
+    """--freeze-previous: the actor a checkpoint restores keeps the older nets frozen, and a resume mid-iteration
+    does not train them: both checkpoints of a 2-net run hold the frozen count of their iteration, and a run resumed
+    half way through net 2 ends bit-identical to the uninterrupted one, net 1 as it was at the end of iteration 1."""
     module = importlib.import_module(script)
     env = dict(env_id="Hopper-v4", num_steps=256) if module is cpc else dict(env_id="CartPole-v1", num_envs=1,
                                                                                num_steps=256)
     args = module.Args(n=2, k=512, num_minibatches=4, update_epochs=1, freeze_previous=True, eval_every=0,
-                       checkpoint_every=256, quiet=True, track_dir=str(tmp_path), **env)
-    run_dir = module.train(args)["run_dir"]
+                       checkpoint_every=256, quiet=True, track_dir=str(tmp_path / "a"), **env)
+    with copy_checkpoint_when(module, lambda c: c["global_step"] == 768, tmp_path / "mid.pt"):
+        full = module.train(args)
+    run_dir = full["run_dir"]
     for iteration, frozen in [(1, 0), (2, 1)]:
         checkpoint = module.load_checkpoint(os.path.join(run_dir, f"iteration_{iteration}.pt"))
         assert checkpoint["num_frozen"] == frozen
         assert module.actor_from_checkpoint(checkpoint).num_frozen == frozen
+    assert module.load_checkpoint(str(tmp_path / "mid.pt"))["iteration"] == 2
+    resumed = resume_from(module, tmp_path / "mid.pt", tmp_path / "b")["actor"]
+    for a, b in zip(full["actor"].parameters(), resumed.parameters()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    first = module.load_checkpoint(os.path.join(run_dir, "iteration_1.pt"))["actor"]
+    for name, param, first_net in resumed.base_net_parameters():
+        if first_net == 0:  # net 1's row of every stacked parameter
+            assert torch.equal(param.detach()[0], first[name][0]), name
 
 
 def test_saved_model_acts_like_the_live_policy(finished_run):
