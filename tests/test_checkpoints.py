@@ -302,6 +302,60 @@ def test_evaluate_capture_video_writes_an_mp4_for_every_cascade_script(script, t
     assert len(data) > 1000 and data[4:8] == b"ftyp"  # an mp4 container
 
 
+@pytest.fixture
+def frames_without_opengl(monkeypatch):
+    """MuJoCo's renderer replaced by one that needs no OpenGL (the video tests above skip where no GL backend
+    works, as on this project's CPU machines): each frame is painted with the simulation's time step, so what is
+    recorded, when and where is checked, not how MuJoCo draws it. Rendering still only reads the simulation."""
+    from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+
+    def render(self):
+        return np.full((48, 64, 3), round(self.data.time / self.dt) % 256, dtype=np.uint8)
+
+    monkeypatch.setattr(MujocoEnv, "render", render)
+
+
+VIDEO_SCRIPTS = {"cascade_ppo_continuous": dict(n=1, k=1024, num_steps=256, num_minibatches=4, update_epochs=1,
+                                                eval_in_worker=False), **TINY_VIDEO_RUNS}
+
+
+@pytest.mark.parametrize("script", list(VIDEO_SCRIPTS))
+def test_videos_are_recorded_as_cleanrl_without_opengl(script, frames_without_opengl, tmp_path, monkeypatch, capsys):
+    """--capture-video in training: CleanRL's episodes 0, 1, 8, ... of the first env become
+    videos/<run_name>/rl-video-episode-<i>.mp4, each one frame per step of its episode (its reset's and every
+    step's), and the nets are those of a run without videos; --evaluate --capture-video writes one more episode
+    beside the checkpoint."""
+    import imageio.v2 as imageio
+
+    module = importlib.import_module(script)
+    monkeypatch.chdir(tmp_path)  # videos/ is made in the working directory, as CleanRL's
+    settings = dict(env_id="InvertedPendulum-v4", eval_every=0, quiet=True, **VIDEO_SCRIPTS[script])
+    run_dir = module.train(module.Args(capture_video=True, track_dir=str(tmp_path / "runs"), **settings))["run_dir"]
+    folder = tmp_path / "videos" / os.path.basename(run_dir)
+    videos = sorted(os.listdir(folder), key=lambda name: int(name.split("-")[-1][:-4]))
+    assert videos[:3] == [f"rl-video-episode-{i}.mp4" for i in (0, 1, 8)], videos
+    lengths = [int(length) for _, length in read_scalars(run_dir)["charts/episodic_length"]]
+    if script != "cascade_ppo_discrete":  # (its four envs' episodes interleave in the log)
+        for video in videos[:2]:
+            episode = int(video.split("-")[-1][:-4])
+            with imageio.get_reader(folder / video) as reader:
+                frames = np.array([frame.mean() for frame in reader])
+            assert len(frames) == lengths[episode] + 1 < 250, video
+            # the reset's frame, then each step's (mp4 compresses lossily: a grey level may come back off by one)
+            assert np.abs(frames - np.arange(len(frames))).max() < 2, (video, frames)
+    plain = module.train(module.Args(track_dir=str(tmp_path / "plain"), **settings))
+    saved, again = module.load_checkpoint(run_dir), module.load_checkpoint(plain["run_dir"])
+    for name, value in saved["actor"].items():
+        assert torch.equal(value, again["actor"][name]), name
+    code, out, error = cli_in_process(capsys, f"{script}.py", "--evaluate", run_dir, "--eval-episodes", "1",
+                                      "--capture-video")
+    assert code == 0, error
+    (video,) = [name for name in os.listdir(run_dir) if name.endswith(".mp4")]
+    assert out.splitlines()[-1].endswith(os.path.join(run_dir, video)), out
+    with imageio.get_reader(os.path.join(run_dir, video)) as reader:
+        assert len([frame for frame in reader]) > 1
+
+
 def test_baseline_checkpoint_resume_and_evaluate(tmp_path, capsys):
     import ppo_baseline as pb
 
