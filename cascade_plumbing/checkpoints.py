@@ -142,7 +142,8 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "") -> 
         fail(f"{path} was written by an older {script}.py ({saved}{older_note}); it cannot be resumed or evaluated "
              "exactly: start a new run")
     if saved != checkpoint_format:
-        fail(f"{path} is not a {script} checkpoint")
+        what = f"a {saved.split('/')[0]} checkpoint" if "/" in saved else "not one of ours"
+        fail(f"{path} is not a {script} checkpoint (it is {what}); pass one that {script}.py wrote")
     checkpoint["path"] = path
     return checkpoint
 
@@ -166,6 +167,9 @@ def intact_beside(path: str) -> str:
         except (OSError, zipfile.BadZipFile):
             continue
         script = os.path.basename(sys.argv[0])
+        if script == "analyze.py":  # plots/analyze.py only reads checkpoints: it continues no run
+            return (f"; the newest intact checkpoint beside it is {candidate} (the end of iteration {i}): pass that "
+                    "with --checkpoint")
         if not replay_rows_kept(run_dir, candidate):
             return (f"; the newest intact checkpoint beside it, {candidate} (the end of iteration {i}), cannot continue "
                     "the run either: the replay rows it needs (--keep-buffer) were deleted as the run moved on; "

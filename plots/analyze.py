@@ -409,4 +409,6 @@ def main(args: FallbackCourse | Plasticity | Table2) -> object:
 
 
 if __name__ == "__main__":
-    main(tyro.extras.subcommand_cli_from_dict(COMMANDS, description=__doc__.split("\n\n")[0]))
+    parsed = tyro.extras.subcommand_cli_from_dict(COMMANDS, description=__doc__.split("\n\n")[0])
+    common.check_cli(parsed)
+    main(parsed)

@@ -17,7 +17,7 @@ import re
 import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -205,6 +205,50 @@ def read_run(path: str) -> Run:
 # ----------------------------------------------------------------------------------------------
 # Selecting and grouping runs
 # ----------------------------------------------------------------------------------------------
+def parse_cli(args_type: type, description: str) -> Any:
+    """A tool's command line, parsed (tyro) and checked before anything is read or written (`check_cli`)."""
+    import tyro
+
+    args = tyro.cli(args_type, description=description)
+    check_cli(args)
+    return args
+
+
+def check_cli(args: Any) -> None:
+    """What a command line names, in one line each: --out must be a folder that can be made and written, --name a
+    file name, and each env, experiment and label experiment named must have runs. A typo in one of several names
+    would otherwise leave it out of the figure silently. (`plots/reproduce.py`, which draws whatever runs are
+    there, passes its names to the tools directly.)"""
+    out = getattr(args, "out", None)
+    if isinstance(out, str):
+        existing = os.path.abspath(out)
+        while not os.path.exists(existing):
+            existing = os.path.dirname(existing)
+        if not os.path.isdir(existing):
+            fail(f"--out {out}: {existing} is a file, not a folder; pass a folder for the output")
+        if not os.access(existing, os.W_OK):
+            fail(f"--out {out}: {existing} cannot be written; pass a folder you can write to")
+    name = getattr(args, "name", None)
+    if isinstance(name, str) and (not name.strip() or "/" in name or os.sep in name):
+        fail(f"--name {name!r}: give a file name without a folder (the files go to --out)")
+    runs = getattr(args, "runs", None)
+    asked = {"--envs": tuple(getattr(args, "envs", ()) or ()), "--experiments": tuple(getattr(args, "experiments", ()) or ()),
+             "--labels": tuple(label.split("=", 1)[0] for label in getattr(args, "labels", ()) or () if "=" in label)}
+    if runs is None or not any(asked.values()):
+        return
+    found = [parse_run_name(d) for d in find_run_dirs([runs] if isinstance(runs, str) else runs)]
+    if not found:
+        return  # select_runs says so, with what it looked for
+    present = {"--envs": sorted({f[0] for f in found}), "--experiments": sorted({f[1] for f in found})}
+    present["--labels"] = present["--experiments"]
+    for flag, names in asked.items():
+        for name in names:
+            if name not in present[flag]:
+                kind = "env" if flag == "--envs" else "experiment"
+                fail(f"{flag} {name}: no runs of that {kind} under {short_list(runs) if not isinstance(runs, str) else runs} "
+                     f"(there are: {short_list(nearest_first(name, present[flag]))}); fix or drop the name")
+
+
 def parse_labels(labels: Sequence[str]) -> dict[str, str]:
     """`EXP=LABEL` pairs on top of the default display names."""
     mapping = dict(DEFAULT_LABELS)

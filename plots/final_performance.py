@@ -38,7 +38,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import tyro
 from rliable import library as rly
 from rliable import metrics, plot_utils
 
@@ -259,4 +258,4 @@ def main(args: Args) -> list[str]:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args, description=__doc__.split("\n\n")[0]))
+    main(common.parse_cli(Args, __doc__.split("\n\n")[0]))

@@ -16,8 +16,6 @@ import os
 import sys
 from dataclasses import dataclass
 
-import tyro
-
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # for `python plots/<script>.py`
 from plots import common  # noqa: E402
 
@@ -100,4 +98,4 @@ def main(args: Args) -> list[str]:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args, description=__doc__.split("\n\n")[0]))
+    main(common.parse_cli(Args, __doc__.split("\n\n")[0]))

@@ -20,7 +20,6 @@ import sys
 from dataclasses import dataclass
 
 import numpy as np
-import tyro
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # for `python plots/<script>.py`
 from plots import common  # noqa: E402
@@ -80,7 +79,9 @@ def main(args: Args) -> list[str]:
             full = np.stack([full_stack_at(r, steps) for r in runs])
             members = {}
             for net in common.fallback_nets(runs, MEMBER):
-                per_run = [r.scalars[f"{MEMBER}{net}"].by_step() for r in runs]
+                # a seed that stopped earlier (or a run with fewer nets) has no evaluation of the later nets: NaN
+                per_run = [r.scalars[f"{MEMBER}{net}"].by_step() if f"{MEMBER}{net}" in r.scalars else {}
+                           for r in runs]
                 members[net] = np.array([[p.get(int(s), np.nan) for s in steps] for p in per_run])
             for values, style, marker, what in ((full, "-", "o", "full stack"), (bottom, "--", "s", "net 1 alone")):
                 mean, sem = common.mean_sem(values)
@@ -126,4 +127,4 @@ def main(args: Args) -> list[str]:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args, description=__doc__.split("\n\n")[0]))
+    main(common.parse_cli(Args, __doc__.split("\n\n")[0]))

@@ -29,7 +29,6 @@ import sys
 from dataclasses import dataclass
 
 import numpy as np
-import tyro
 from rliable import metrics
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # for `python plots/<script>.py`
@@ -187,6 +186,11 @@ def main(args: Args) -> list[str]:
         common.fail(f"no exported runs of {', '.join(ENV_ORDER)} in {args.runs}")
     runs = (args.runs,)
     fig2 = ("cascade", "ppo")  # the ablations' runs share the folder
+    exported = {common.parse_run_name(p)[1] for p in common.find_run_dirs([args.runs])}
+    missing = [exp for exp in fig2 if exp not in exported]
+    if missing:  # checked before anything is written: a half-rebuilt figures folder would mix two sets of runs
+        common.fail(f"{args.runs} has no exported runs of {' or '.join(missing)}; every figure builds on Fig. 2's "
+                    f"standard Cascade and PPO runs (`sweep.py --preset reproduce`, then plots/export_results.py)")
     paths = learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name="fig2_learning_curves",
                                                       envs=envs, experiments=fig2, labels=LABELS))
     paths += final_performance.main(final_performance.Args(runs=runs, out=args.out, envs=envs, experiments=fig2,
@@ -249,4 +253,4 @@ def ablation_summary(args: Args, figure: str, experiments: tuple, labels: tuple,
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args, description=__doc__.split("\n\n")[0]))
+    main(common.parse_cli(Args, __doc__.split("\n\n")[0]))

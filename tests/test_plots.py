@@ -403,7 +403,86 @@ def test_command_line(runs, tmp_path):
     bad = subprocess.run([sys.executable, script, "--runs", runs["track"], "--envs", "Ant-v4"],
                          capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert bad.returncode != 0 and bad.stderr.strip().count("\n") == 0
-    assert bad.stderr.startswith("error: no runs of") and "Ant-v4" in bad.stderr and "Hopper-v4" in bad.stderr
+    assert bad.stderr.startswith("error: --envs Ant-v4: no runs") and "Hopper-v4" in bad.stderr
+
+
+def test_each_name_and_folder_a_command_line_gives_is_checked(runs, tmp_path):
+    """Audit: a typo in one of several names (--experiments, --envs, --labels) was left out of the figure silently,
+    exit 0; an --out that is a file or a --name with a folder was a traceback."""
+    track, both = (runs["track"],), ("cascade_ppo_continuous", "ppo_baseline")
+    for args, flag in [(dict(experiments=("cascade_ppo_continuous", "cascade_ppo_continous")), "--experiments"),
+                       (dict(envs=("Hopper-v4", "Ant-v4")), "--envs"),
+                       (dict(labels=("cascade_ppo_continous=Cascade",)), "--labels")]:
+        message = error_of(lambda args=args: common.check_cli(learning_curves.Args(runs=track, out=str(tmp_path), **args)))
+        assert message.startswith(f"error: {flag} ") and "no runs" in message, message
+    assert "cascade_ppo_continuous" in error_of(lambda: common.check_cli(final_performance.Args(
+        runs=track, experiments=("cascade_ppo_continous",), out=str(tmp_path))))  # the close match is named
+    common.check_cli(learning_curves.Args(runs=track, experiments=both, envs=("Hopper-v4",), out=str(tmp_path)))
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    for out in (a_file, a_file / "below"):
+        assert "is a file, not a folder" in error_of(lambda out=out: common.check_cli(learning_curves.Args(
+            runs=track, out=str(out))))
+    for name in ("sub/x", ""):
+        assert "--name" in error_of(lambda name=name: common.check_cli(learning_curves.Args(runs=track, name=name)))
+    script = os.path.join(ROOT, "plots", "fallback.py")
+    bad = subprocess.run([sys.executable, script, "--runs", runs["track"], "--experiments", "cascade_ppo_continuous",
+                          "cascade_fb005", "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=120)
+    assert bad.returncode != 0 and bad.stderr.startswith("error: --experiments cascade_fb005: no runs"), bad.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def test_members_with_a_seed_that_has_fewer_nets(runs, tmp_path):
+    """Audit: a seed still running (or of a smaller n) has no member returns of the later nets: a KeyError."""
+    import json
+
+    from plots import export_results
+
+    exported = tmp_path / "exported"
+    export_results.main(export_results.Args(runs=[runs["track"]], out=str(exported), commit="test"))
+
+    name = os.path.basename(runs["cascade"][1]) + ".json"
+    data = json.load(open(exported / name))
+    del data["scalars"]["members/return/net_2"]
+    json.dump(data, open(exported / name, "w"))
+    members.main(members.Args(runs=(str(exported),), out=str(tmp_path / "out")))
+    rows = read_csv(tmp_path / "out" / "members.csv")
+    seed_1 = dict(read_scalars(runs["cascade"][0])["members/return/net_2"])[2048]
+    assert float(rows[1]["net_2"]) == pytest.approx(seed_1, rel=1e-6)  # the one seed that has it
+
+
+def test_analyze_names_what_a_wrong_checkpoint_is_and_advises_no_resume(runs, tmp_path):
+    """Audit: another script's checkpoint was "not a cascade_ppo_continuous checkpoint" with no word of what it was,
+    and a corrupt checkpoint.pt advised `analyze.py --resume`, a flag analyze.py does not have."""
+    import cascade_ppo_discrete as cpd
+
+    discrete = cpd.train(cpd.Args(env_id="CartPole-v1", n=1, k=256, num_envs=1, num_steps=128, eval_every=0,
+                                  quiet=True, track_dir=str(tmp_path / "discrete")))["run_dir"]
+    message = error_of(lambda: analyze.fallback_course(analyze.FallbackCourse(checkpoint=discrete, out=str(tmp_path))))
+    assert "is not a cascade_ppo_continuous checkpoint (it is a cascade_ppo_discrete checkpoint)" in message, message
+    broken = tmp_path / os.path.basename(runs["cascade"][0])
+    shutil.copytree(runs["cascade"][0], broken)
+    (broken / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "plots", "analyze.py"), "fallback-course",
+                           "--checkpoint", str(broken), "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=120)
+    line = proc.stderr.strip()
+    assert proc.returncode != 0 and "cannot read checkpoint" in line and "--resume" not in line, line
+    assert line.endswith(f"{broken / 'iteration_2.pt'} (the end of iteration 2): pass that with --checkpoint"), line
+
+
+def test_reproduce_writes_nothing_without_the_standard_runs(tmp_path):
+    """Audit: with no Cascade runs it wrote Fig. 2 and the final performance, then stopped: a half-rebuilt folder."""
+    from plots import reproduce
+
+    only_ppo = tmp_path / "only_ppo"
+    only_ppo.mkdir()
+    sample = os.path.join(ROOT, "results", "sample")
+    for name in os.listdir(sample):
+        if "__ppo__" in name:
+            shutil.copy(os.path.join(sample, name), only_ppo)
+    message = error_of(lambda: reproduce.main(reproduce.Args(runs=str(only_ppo), out=str(tmp_path / "out"), reps=50)))
+    assert "no exported runs of cascade" in message and not (tmp_path / "out").exists()
 
 
 def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
