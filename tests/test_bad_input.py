@@ -184,6 +184,9 @@ def test_a_stopped_evaluation_is_one_line(signum, capsys):
     handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     args = SimpleNamespace(evaluate="runs/some_run", resume=None, seed=1)
     try:
+        # Ctrl-C in a terminal: Python's own handler (a test run started in the background, `cmd &`, inherits an
+        # ignored SIGINT, which the script rightly leaves ignored)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         with pytest.raises(SystemExit) as stop:
             runs.evaluate_only(args, set(), evaluation_stopped)
     finally:
