@@ -90,6 +90,11 @@ def main(args: Args) -> list[str]:
         common.fail("--final-window must be at least 1")
     selection = common.select_runs(args.runs, args.envs, args.experiments, args.split_by, args.labels, [PRODUCT],
                                    complete_only=not args.allow_incomplete)
+    logged = common.fallback_nets([r for runs in selection.groups.values() for r in runs], FALLBACK)
+    unknown = [net for net in args.nets if net not in logged]
+    if unknown:  # (it drew an empty panel, "no net with a fallback", exit 0)
+        common.fail(f"--nets {unknown[0]}: the runs' nets with a fallback are {', '.join(map(str, logged)) or 'none'} "
+                    "(net 1 has none)")
     plt = common.pyplot()
     paths = []
 

@@ -418,6 +418,13 @@ def test_each_name_and_folder_a_command_line_gives_is_checked(runs, tmp_path):
     assert "cascade_ppo_continuous" in error_of(lambda: common.check_cli(final_performance.Args(
         runs=track, experiments=("cascade_ppo_continous",), out=str(tmp_path))))  # the close match is named
     common.check_cli(learning_curves.Args(runs=track, experiments=both, envs=("Hopper-v4",), out=str(tmp_path)))
+    # a baseline named explicitly must have runs (its experiment or display label); the default may be absent
+    assert error_of(lambda: common.check_cli(final_performance.Args(runs=track, baseline="ppo_basline"))).startswith(
+        "error: --baseline ppo_basline: no runs")
+    for baseline in ("ppo_baseline", "PPO"):
+        common.check_cli(final_performance.Args(runs=track, baseline=baseline))
+    assert "--nets 9: the runs' nets with a fallback are 2" in error_of(lambda: fallback.main(fallback.Args(
+        runs=track, nets=(9,), out=str(tmp_path / "fb"))))
     a_file = tmp_path / "a_file"
     a_file.write_text("")
     for out in (a_file, a_file / "below"):
