@@ -112,33 +112,43 @@ def main(args: Args) -> list[str]:
         head = subprocess.run(["git", "-C", os.path.dirname(os.path.abspath(__file__)), "rev-parse", "HEAD"],
                               capture_output=True, text=True)
         commit = head.stdout.strip() or None
-    os.makedirs(args.out, exist_ok=True)
-    written = []
-    found = common.find_run_dirs(args.runs)
-    if not any(not path.endswith(".json") for path in found):
+    found = [path for path in common.find_run_dirs(args.runs) if not path.endswith(".json")]  # (.json: exported)
+    if not found:
         common.fail(f"no run folders (named like a run, holding TensorBoard event files) under {' '.join(args.runs)}")
-    for path in found:
-        if path.endswith(".json"):
-            continue  # already exported
-        target = os.path.join(args.out, os.path.basename(path) + ".json")
-        if os.path.exists(target) and not args.overwrite:
-            common.note(f"skipped {path}: {target} exists (--overwrite replaces it)")
-            continue
-        run = common.read_run(path)
-        planned = planned_steps(run.hparams)
-        if "eval/episodic_return" not in run.scalars:
-            common.note(f"skipped {path}: no evaluations logged")
-            continue
-        final = int(run.scalars["eval/episodic_return"].steps.max())
-        if planned is not None and final < planned and not args.allow_incomplete:
-            common.note(f"skipped {path}: evaluated up to step {final:,} of {planned:,} (unfinished)")
-            continue
-        tmp = f"{target}.tmp"
-        with open(tmp, "w") as f:
-            json.dump(export(run, commit), f, separators=(",", ":"))
-        os.replace(tmp, target)
-        written.append(target)
-    common.report(written)
+    by_name: dict[str, str] = {}
+    for path in found:  # one file per run name: a second folder of the same name would overwrite the first
+        other = by_name.setdefault(os.path.basename(path), path)
+        if other != path:
+            common.fail(f"two run folders are named {os.path.basename(path)} ({other} and {path}); export them "
+                        "one at a time into different --out folders")
+    os.makedirs(args.out, exist_ok=True)
+    written, kept = [], 0
+    try:
+        for path in found:
+            target = os.path.join(args.out, os.path.basename(path) + ".json")
+            if os.path.exists(target) and not args.overwrite:
+                common.note(f"skipped {path}: {target} exists (--overwrite replaces it)")
+                kept += 1
+                continue
+            run = common.read_run(path)
+            planned = planned_steps(run.hparams)
+            if "eval/episodic_return" not in run.scalars:
+                common.note(f"skipped {path}: no evaluations logged")
+                continue
+            final = int(run.scalars["eval/episodic_return"].steps.max())
+            if planned is not None and final < planned and not args.allow_incomplete:
+                common.note(f"skipped {path}: evaluated up to step {final:,} of {planned:,} (unfinished)")
+                continue
+            tmp = f"{target}.tmp"
+            with open(tmp, "w") as f:
+                json.dump(export(run, commit), f, separators=(",", ":"))
+            os.replace(tmp, target)
+            written.append(target)
+    finally:  # also when a later run stops the export: what was written is said
+        common.report(written)
+    if not written and not kept:
+        common.fail(f"nothing exported from {' '.join(args.runs)}: no run there has finished and logged evaluations "
+                    "(see the notes above; --allow-incomplete exports unfinished runs)")
     return written
 
 

@@ -570,8 +570,15 @@ def test_exported_runs_hold_what_the_figures_read(runs, tmp_path, capsys):
                             hparams={"num_envs": 1, "num_steps": 2048, "total_timesteps": 1_000_000, "seed": 3})
     args = export_results.Args(runs=[os.path.dirname(killed)], out=str(tmp_path / "killed_out"))
     capsys.readouterr()
-    assert export_results.main(args) == []
+    assert "nothing exported" in error_of(lambda: export_results.main(args))  # (it exited 0 with the note alone)
     assert "evaluated up to step 500,000 of 999,424 (unfinished)" in capsys.readouterr().err
+    # two folders of one run name would write one file, the second over the first: refused before anything is written
+    twin = write_fake_run(tmp_path / "twins" / "a", "Hopper-v4__ppo_baseline__3__1700000000", [0, 500_000])
+    write_fake_run(tmp_path / "twins" / "b", os.path.basename(twin), [0, 500_000])
+    message = error_of(lambda: export_results.main(export_results.Args(runs=[str(tmp_path / "twins")],
+                                                                       out=str(tmp_path / "twins_out"))))
+    assert "two run folders are named Hopper-v4__ppo_baseline__3__1700000000" in message
+    assert not (tmp_path / "twins_out").exists()
     assert len(export_results.main(dataclasses.replace(args, allow_incomplete=True))) == 1
     # one run folder given itself, with a trailing slash (as a shell completes it), is that run; a folder
     # with no run in it is an error, not a silent nothing; a file already there is named when skipped
