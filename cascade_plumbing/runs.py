@@ -15,6 +15,7 @@ import sys
 import tempfile
 import threading
 import time
+import traceback
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -217,6 +218,21 @@ def quiet_writer_threads(hook: Callable = threading.excepthook) -> Callable:
     return excepthook
 
 
+def quiet_resource_sharer(hook: Callable = sys.excepthook) -> Callable:
+    """A sys.excepthook that leaves out, after a stop, the connection a --num-envs worker reset in multiprocessing's
+    resource-sharer thread (which reports through sys.excepthook): the worker was ended by the same Ctrl-C, and the
+    run's one stop line says all there is (a CI run saw that traceback after it)."""
+
+    def excepthook(kind, value, tb) -> None:
+        if STOPPED_BY and issubclass(kind, (ConnectionError, EOFError)) and any(
+                frame.f_code.co_filename.endswith("resource_sharer.py") for frame, _ in traceback.walk_tb(tb)):
+            return
+        hook(kind, value, tb)
+
+    excepthook.quiet_resource_sharer = True
+    return excepthook
+
+
 def stopped(checkpoint: dict | None) -> None:
     """One line on where a stopped run's last checkpoint is and how to continue; exit 130 (SIGINT) / 143 (SIGTERM).
     A new run stopped before its first checkpoint removes its folder: there is nothing in it to resume."""
@@ -380,6 +396,8 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     FINAL[:] = [lambda path, payload: finished(type(args)(**payload["args"]), {**payload, "path": path})]
     if not getattr(threading.excepthook, "quiet_writer_threads", False):
         threading.excepthook = quiet_writer_threads(threading.excepthook)
+    if not getattr(sys.excepthook, "quiet_resource_sharer", False):
+        sys.excepthook = quiet_resource_sharer(sys.excepthook)
     RUN_DIR.clear()
     try:
         train(args, checkpoint)

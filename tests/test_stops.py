@@ -289,3 +289,37 @@ def test_a_resume_of_a_run_that_is_still_training_is_refused(tmp_path):
     from cascade_plumbing.runs import lock_run_dir, unlock_run_dir
     lock_run_dir(run_dir)  # free: the stopped run's lock ended with it
     unlock_run_dir(run_dir)
+
+
+def test_after_a_stop_a_worker_s_reset_connection_is_not_reported():
+    """A fresh-clone CI run: Ctrl-C during a --num-envs 2 run printed, after the one stop line, a traceback of
+    multiprocessing's resource-sharer thread (ConnectionResetError: the worker ended by the same Ctrl-C)."""
+    from cascade_plumbing import runs
+
+    code = compile("def serve():\n    raise ConnectionResetError(104, 'Connection reset by peer')\n",
+                   "/usr/lib/python3/multiprocessing/resource_sharer.py", "exec")
+    namespace: dict = {}
+    exec(code, namespace)
+
+    def reported(error_source, stopped):
+        seen = []
+        hook = runs.quiet_resource_sharer(lambda *info: seen.append(info))
+        try:
+            error_source()
+        except Exception:
+            info = sys.exc_info()
+        saved = list(runs.STOPPED_BY)
+        runs.STOPPED_BY[:] = [signal.SIGINT] if stopped else []
+        try:
+            hook(*info)
+        finally:
+            runs.STOPPED_BY[:] = saved
+        return bool(seen)
+
+    assert not reported(namespace["serve"], stopped=True)
+    assert reported(namespace["serve"], stopped=False)  # without a stop it is a real error
+
+    def elsewhere():
+        raise ConnectionResetError(104, "Connection reset by peer")
+
+    assert reported(elsewhere, stopped=True)  # not the resource sharer's: reported
