@@ -232,10 +232,7 @@ def check_cli(args: Any) -> None:
     if isinstance(name, str) and (not name.strip() or "/" in name or os.sep in name):
         fail(f"--name {name!r}: give a file name without a folder (the files go to --out)")
     baseline = getattr(args, "baseline", None)
-    if isinstance(baseline, str) and baseline != getattr(type(args), "baseline", baseline):  # named, not the default
-        asked_baseline = baseline
-    else:
-        asked_baseline = None
+    asked_baseline = baseline if baseline != getattr(type(args), "baseline", None) else None  # named, not the default
     runs = getattr(args, "runs", None)
     asked = {"--envs": tuple(getattr(args, "envs", ()) or ()), "--experiments": tuple(getattr(args, "experiments", ()) or ()),
              "--labels": tuple(label.split("=", 1)[0] for label in getattr(args, "labels", ()) or () if "=" in label)}
@@ -246,7 +243,7 @@ def check_cli(args: Any) -> None:
         return  # select_runs says so, with what it looked for
     present = {"--envs": sorted({f[0] for f in found}), "--experiments": sorted({f[1] for f in found})}
     present["--labels"] = present["--experiments"]
-    labels = {**DEFAULT_LABELS, **parse_labels(getattr(args, "labels", ()) or ())}
+    labels = parse_labels(getattr(args, "labels", ()) or ())  # (the default display names included)
     if asked_baseline and asked_baseline not in present["--experiments"] + [labels.get(e, e) for e in present["--experiments"]]:
         fail(f"--baseline {asked_baseline}: no runs of that experiment or label under {runs if isinstance(runs, str) else short_list(runs)} "
              f"(there are: {short_list(nearest_first(asked_baseline, present['--experiments']))}); fix the name")
