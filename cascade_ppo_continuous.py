@@ -838,9 +838,10 @@ class RunLog(RunRecord):
 CHECKPOINT_FORMAT = "cascade_ppo_continuous/2"
 
 
-def load_checkpoint(path: str) -> dict:
-    """A run folder's latest checkpoint, or a checkpoint file, of this script (one-line error otherwise)."""
-    return checkpoints.load_checkpoint(path, CHECKPOINT_FORMAT)
+def load_checkpoint(path: str, reader_flag: str = "") -> dict:
+    """A run folder's latest checkpoint, or a checkpoint file, of this script (one-line error otherwise; a caller
+    that only reads it names in `reader_flag` the flag that takes another file, for the advice)."""
+    return checkpoints.load_checkpoint(path, CHECKPOINT_FORMAT, reader_flag=reader_flag)
 
 
 def finished(args: Args, checkpoint: dict) -> bool:

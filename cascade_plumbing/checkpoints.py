@@ -120,22 +120,23 @@ def repair_iteration_files(run_dir: str, checkpoint: dict, at_iteration_end: boo
                   "analyses of that iteration (plots/analyze.py) are unavailable for this run", file=sys.stderr)
 
 
-def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "") -> dict:
+def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "", reader_flag: str = "") -> dict:
     """Load `runs/<run>` (its latest checkpoint) or a checkpoint file; one-line error if missing, corrupt, of
     another script, or of another version of this one (`checkpoint_format` is "<script>/<version>";
-    `older_note` says what changed since an older version)."""
+    `older_note` says what changed since an older version). A caller that only reads checkpoints (an analysis)
+    names in `reader_flag` the flag that takes one: a corrupt file's error then advises that flag, not --resume."""
     if os.path.isdir(path):
         path = os.path.join(path, CHECKPOINT_NAME)
     if not os.path.isfile(path):
         beside = ""  # a run folder that lost its checkpoint.pt: the iteration file it can continue from
         if glob.glob(os.path.join(glob.escape(os.path.dirname(path)), "iteration_*.pt")):
-            beside = intact_beside(path)
+            beside = intact_beside(path, reader_flag)
         fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file{beside}")
     try:
         # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
-        fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__}){intact_beside(path)}")
+        fail(f"cannot read checkpoint {path} (corrupt or not a checkpoint: {type(exc).__name__}){intact_beside(path, reader_flag)}")
     script = checkpoint_format.split("/")[0]
     saved = str(checkpoint.get("format", "")) if isinstance(checkpoint, dict) else ""
     if saved.startswith(f"{script}/") and saved != checkpoint_format:
@@ -148,9 +149,10 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "") -> 
     return checkpoint
 
 
-def intact_beside(path: str) -> str:
+def intact_beside(path: str, reader_flag: str = "") -> str:
     """For a run's unreadable checkpoint.pt: "; " and the newest intact iteration_<i>.pt beside it, with the command
-    that continues the run from it (in the same folder), or "" if there is none."""
+    that continues the run from it (in the same folder), or "" if there is none. With `reader_flag` (a caller that
+    only reads checkpoints), the advice is to pass that file with the flag instead."""
     if os.path.basename(path) != CHECKPOINT_NAME:
         return ""
     run_dir = os.path.dirname(path)
@@ -166,10 +168,10 @@ def intact_beside(path: str) -> str:
                     continue
         except (OSError, zipfile.BadZipFile):
             continue
-        script = os.path.basename(sys.argv[0])
-        if script == "analyze.py":  # plots/analyze.py only reads checkpoints: it continues no run
+        if reader_flag:  # the caller continues no run
             return (f"; the newest intact checkpoint beside it is {candidate} (the end of iteration {i}): pass that "
-                    "with --checkpoint")
+                    f"with {reader_flag}")
+        script = os.path.basename(sys.argv[0])
         if not replay_rows_kept(run_dir, candidate):
             return (f"; the newest intact checkpoint beside it, {candidate} (the end of iteration {i}), cannot continue "
                     "the run either: the replay rows it needs (--keep-buffer) were deleted as the run moved on; "

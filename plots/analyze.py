@@ -160,7 +160,7 @@ def checkpoint_args(checkpoint: dict) -> cpc.Args:
 # fallback-course (Fig. 17)
 # ----------------------------------------------------------------------------------------------
 def fallback_course(args: FallbackCourse) -> list[str]:
-    checkpoint = cpc.load_checkpoint(args.checkpoint)
+    checkpoint = cpc.load_checkpoint(args.checkpoint, reader_flag="--checkpoint")
     saved = checkpoint_args(checkpoint)
     actor = cpc.actor_from_checkpoint(checkpoint)
     if actor.size < 2:
@@ -278,7 +278,7 @@ def resolve_iteration_checkpoint(path: str) -> str:
 def plasticity(args: Plasticity) -> dict:
     if min(args.updates, args.samples, args.observations) < 1:
         common.fail("--updates, --samples and --observations must be at least 1")
-    checkpoint = cpc.load_checkpoint(resolve_iteration_checkpoint(args.checkpoint))
+    checkpoint = cpc.load_checkpoint(resolve_iteration_checkpoint(args.checkpoint), reader_flag="--checkpoint")
     saved = checkpoint_args(checkpoint)
     if saved.start_full:
         common.fail(f"{checkpoint['path']} is a --start-full run: it never adds a net, so there is no before/after")

@@ -476,6 +476,10 @@ def test_analyze_names_what_a_wrong_checkpoint_is_and_advises_no_resume(runs, tm
     line = proc.stderr.strip()
     assert proc.returncode != 0 and "cannot read checkpoint" in line and "--resume" not in line, line
     assert line.endswith(f"{broken / 'iteration_2.pt'} (the end of iteration 2): pass that with --checkpoint"), line
+    # the advice follows from the caller, not from the program's name: the same call made from another program
+    in_process = error_of(lambda: analyze.plasticity(analyze.Plasticity(checkpoint=str(broken / "checkpoint.pt"),
+                                                                       out=str(tmp_path / "out"))))
+    assert in_process.endswith("(the end of iteration 2): pass that with --checkpoint"), in_process
 
 
 def test_reproduce_writes_nothing_without_the_standard_runs(tmp_path):
