@@ -419,6 +419,13 @@ def stack_seeds(runs: Sequence[Run], tag: str) -> tuple[np.ndarray, np.ndarray]:
     """
     per_run = [r.series(tag).by_step() for r in runs]
     common = sorted(set.intersection(*(set(p) for p in per_run)))
+    if len(common) < 2 and max(len(p) for p in per_run) >= 2:  # the curve would be one point or none: drawn empty
+        shortest = min(zip(runs, per_run), key=lambda rp: (len(rp[1]), max(rp[1], default=-1)))
+        reach = f"stops at step {max(shortest[1]):,}" if shortest[1] else "logs none"
+        shared = f"only step {common[0]:,}" if common else "no step"
+        fail(f"the runs {short_list(r.name for r in runs)} share {shared} of '{tag}' ({shortest[0].name} {reach}; "
+             "or do they log it at different steps?): leave the short run out of --runs, or tell the runs apart "
+             "with --split-by / --exp-name")
     for run, p in zip(runs, per_run):
         extra = len(p) - len(common)
         if extra:

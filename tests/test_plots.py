@@ -705,3 +705,19 @@ def test_damaged_and_truncated_runs_are_named_and_kept_out_of_final_scores(tmp_p
     final_performance.main(final_performance.Args(**args, allow_incomplete=True))
     rows = read_csv(tmp_path / "out" / "final_performance.csv")
     assert [int(r["seeds"]) for r in rows if r["env"] == "Hopper-v4"] == [3], rows
+
+
+def test_a_curve_whose_seeds_share_one_step_is_an_error(tmp_path):
+    """Audit: a seed that had only just started (or one evaluated at other steps) left the group's curve a single
+    point at step 0: the figure was drawn empty and the command exited 0."""
+    root = tmp_path / "runs"
+    for seed in (1, 2):
+        write_fake_run(root, f"Hopper-v4__ppo_baseline__{seed}__1700000000", [0, 4096, 8192], 100.0 * seed)
+    write_fake_run(root, "Hopper-v4__ppo_baseline__3__1700000000", [0], 5.0)
+    message = error_of(lambda: learning_curves.main(learning_curves.Args(runs=(str(root),), out=str(tmp_path))))
+    assert "share only step 0 of 'eval/episodic_return'" in message, message
+    assert "Hopper-v4__ppo_baseline__3__1700000000 stops at step 0" in message, message
+    (root / "Hopper-v4__ppo_baseline__3__1700000000").rename(tmp_path / "set_aside")
+    paths = learning_curves.main(learning_curves.Args(runs=(str(root),), out=str(tmp_path)))
+    rows = read_csv(next(p for p in paths if p.endswith(".csv")))
+    assert sorted(int(r["step"]) for r in rows) == [0, 4096, 8192], rows
