@@ -275,6 +275,15 @@ def describe(runs: Sequence[Run]) -> str:
     return short_list(f"{key} ({n} run{'s' if n > 1 else ''})" for key, n in sorted(counts.items()))
 
 
+def evaluation_protocol(runs: Sequence[Run]) -> str:
+    """How the runs were evaluated, from their logged settings: `every 50k steps, 10 episodes each`."""
+    every = sorted({r.hparams.get("eval_every", "?") for r in runs})
+    episodes = sorted({r.hparams.get("eval_episodes", "?") for r in runs})
+    steps = " / ".join(format_steps(int(e)) if e.isdigit() else e for e in every)
+    return f"every {steps} steps, {' / '.join(episodes)} episodes each" + (" (the runs differ)" if
+                                                                           len(every) > 1 or len(episodes) > 1 else "")
+
+
 def group_label(run: Run, labels: dict[str, str], split_by: Sequence[str]) -> str:
     label = labels.get(run.exp_name, run.exp_name)
     extra = [f"{key}={run.hparams[key]}" for key in split_by if key in run.hparams]

@@ -118,8 +118,9 @@ def summary(args: Args) -> str:
     selection = common.select_runs((args.runs,), [e for e in ENV_ORDER if e in envs_present(args.runs)],
                                    ("cascade", "ppo"), labels=LABELS, complete_only=not args.allow_incomplete)
     lines = ["# Reproduction of the paper's Fig. 2 (our runs, results/per_run)", "",
-             f"Score of a run: mean evaluation return over its last {args.final_window} evaluations (every 50k steps, "
-             "10 stochastic episodes each). Mean ± standard error over seeds; P(Cascade > PPO) is the share of "
+             f"Score of a run: mean evaluation return over its last {args.final_window} evaluations "
+             f"({common.evaluation_protocol([r for runs in selection.groups.values() for r in runs])}, stochastic "
+             "policy). Mean ± standard error over seeds; P(Cascade > PPO) is the share of "
              "(Cascade run, PPO run) pairs where Cascade scored higher.", ""]
     rows = []
     for env in selection.envs:

@@ -516,6 +516,12 @@ def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
         scores[data["hparams"]["exp_name"]].append(np.mean(data["scalars"]["eval/episodic_return"]["values"][-3:]))
         assert data["command"] and data["commit"] and data["seconds"] > 0
     summary = open(tmp_path / "summary.md").read()
+    # the evaluation protocol it states is the runs' own (it said "every 50k steps, 10 episodes" whatever they did)
+    logged = {(data["hparams"]["eval_every"], data["hparams"]["eval_episodes"])
+              for data in (json.load(open(os.path.join(sample, name))) for name in os.listdir(sample))}
+    assert len(logged) == 1 and logged != {("50000", "10")}, logged
+    every, episodes = logged.pop()
+    assert f"last 3 evaluations (every {common.format_steps(int(every))} steps, {episodes} episodes each" in summary
     row = next(line for line in summary.splitlines() if line.startswith("| Hopper-v4 |"))
     assert f"{np.mean(scores['cascade']):.0f} ± " in row and f"{np.mean(scores['ppo']):.0f} ± " in row, row
     better = reference_improvement(np.array(scores["cascade"]), np.array(scores["ppo"]))
