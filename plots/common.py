@@ -284,6 +284,17 @@ def evaluation_protocol(runs: Sequence[Run]) -> str:
                                                                            len(every) > 1 or len(episodes) > 1 else "")
 
 
+def final_score(run: Run, tag: str, window: int) -> float:
+    """A run's final score: the mean of its last `window` values of `tag`. A run with fewer values is an error (the
+    mean of a whole run is no final score)."""
+    series = run.series(tag)
+    logged = len(series.by_step())
+    if logged < window:
+        fail(f"--final-window {window}: {run.name} logs only {logged} value{'s' if logged != 1 else ''} of '{tag}'; "
+             f"pass at most {logged}")
+    return series.last(window)
+
+
 def group_label(run: Run, labels: dict[str, str], split_by: Sequence[str]) -> str:
     label = labels.get(run.exp_name, run.exp_name)
     extra = [f"{key}={run.hparams[key]}" for key in split_by if key in run.hparams]

@@ -103,7 +103,18 @@ def run_scores(runs: Sequence[common.Run], scalar: str, window: int) -> np.ndarr
     if len(ends) > 1:
         common.note(f"runs of {runs[0].env_id}/{runs[0].exp_name} end at different steps "
                     f"({', '.join(f'{int(e):,}' for e in sorted(ends))}); each is scored at its own end")
-    return np.array([r.series(scalar).last(window) for r in runs])
+    return np.array([common.final_score(r, scalar, window) for r in runs])
+
+
+def note_different_budgets(selection: common.Selection, scalar: str) -> None:
+    """Groups of one env compared at different step counts (a 6M-step Cascade against a 1M-step PPO) are not a
+    like-for-like comparison: say so (a difference of less than 5%, from rounding to whole rollouts, is none)."""
+    for env in selection.envs:
+        ends = {label: max(int(r.series(scalar).steps.max()) for r in runs) for label, runs in selection.in_env(env)}
+        if min(ends.values()) < 0.95 * max(ends.values()):  # not a rollout's rounding (5,996,544 vs 5,998,592)
+            common.note(f"on {env} the experiments end at different steps ("
+                        f"{', '.join(f'{label}: {step:,}' for label, step in ends.items())}): their final scores "
+                        "compare different budgets")
 
 
 def find_baseline(selection: common.Selection, baseline: str) -> str | None:
@@ -119,6 +130,7 @@ def main(args: Args) -> list[str]:
     selection = common.select_runs(args.runs, args.envs, args.experiments, args.split_by, args.labels, [args.scalar],
                                    complete_only=not args.allow_incomplete)
     scores = {key: run_scores(runs, args.scalar, args.final_window) for key, runs in selection.groups.items()}
+    note_different_budgets(selection, args.scalar)
     base = find_baseline(selection, args.baseline)
     if base is None:
         common.note(f"no runs of the baseline '{args.baseline}' (found {common.short_list(selection.labels)}); "

@@ -104,7 +104,7 @@ class Args:
 
 
 def final_scores(runs: list[common.Run], window: int) -> np.ndarray:
-    return np.array([r.series("eval/episodic_return").last(window) for r in runs])
+    return np.array([common.final_score(r, "eval/episodic_return", window) for r in runs])
 
 
 def mean_and_error(scores: np.ndarray) -> str:

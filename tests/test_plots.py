@@ -727,3 +727,23 @@ def test_a_curve_whose_seeds_share_one_step_is_an_error(tmp_path):
     paths = learning_curves.main(learning_curves.Args(runs=(str(root),), out=str(tmp_path)))
     rows = read_csv(next(p for p in paths if p.endswith(".csv")))
     assert sorted(int(r["step"]) for r in rows) == [0, 4096, 8192], rows
+
+
+def test_final_scores_need_the_window_and_say_when_budgets_differ(tmp_path, capsys):
+    """Audit: --final-window longer than the runs silently scored the mean of the whole run, and an experiment at
+    8k steps was compared with one at 80k without a word."""
+    root = tmp_path / "runs"
+    write_fake_run(root, "Hopper-v4__ppo_baseline__1__1700000000", [0, 4096, 8192], 100.0)
+    write_fake_run(root, "Hopper-v4__cascade__1__1700000000", range(0, 81920 + 1, 4096), 300.0)
+    args = dict(runs=(str(root),), out=str(tmp_path / "out"), baseline="ppo_baseline", reps=50)
+    message = error_of(lambda: final_performance.main(final_performance.Args(**args, final_window=4)))
+    assert message.endswith("--final-window 4: Hopper-v4__ppo_baseline__1__1700000000 logs only 3 values of "
+                            "'eval/episodic_return'; pass at most 3"), message
+    capsys.readouterr()
+    final_performance.main(final_performance.Args(**args, final_window=3))
+    err = capsys.readouterr().err
+    assert "on Hopper-v4 the experiments end at different steps (PPO: 8,192, cascade: 81,920)" in err, err
+    shutil.rmtree(root / "Hopper-v4__ppo_baseline__1__1700000000")
+    write_fake_run(root, "Hopper-v4__ppo_baseline__1__1700000000", range(0, 79872 + 1, 4096), 100.0)  # a rollout less
+    final_performance.main(final_performance.Args(**args, final_window=3))
+    assert "different steps" not in capsys.readouterr().err
