@@ -164,8 +164,9 @@ def fallback_course(args: FallbackCourse) -> list[str]:
     saved = checkpoint_args(checkpoint)
     actor = cpc.actor_from_checkpoint(checkpoint)
     if actor.size < 2:
-        common.fail(f"{checkpoint['path']} holds 1 base net, which has no fallback; pass a later "
-                    "iteration_<i>.pt or the run's checkpoint.pt")
+        later = ("pass a later iteration_<i>.pt or the run's checkpoint.pt" if saved.n > 1
+                 else "its run has no other (--n 1): pass a checkpoint of a run with --n 2 or more")
+        common.fail(f"{checkpoint['path']} holds 1 base net, which has no fallback; {later}")
     nets = list(args.nets) or list(range(2, actor.size + 1))
     bad = [i for i in nets if not 2 <= i <= actor.size]
     if bad:
@@ -278,6 +279,8 @@ def resolve_iteration_checkpoint(path: str) -> str:
 def plasticity(args: Plasticity) -> dict:
     if min(args.updates, args.samples, args.observations) < 1:
         common.fail("--updates, --samples and --observations must be at least 1")
+    if not args.learning_rate > 0:
+        common.fail(f"--learning-rate {args.learning_rate}: Adam's learning rate must be positive (training's: 3e-4)")
     checkpoint = cpc.load_checkpoint(resolve_iteration_checkpoint(args.checkpoint), reader_flag="--checkpoint")
     saved = checkpoint_args(checkpoint)
     if saved.start_full:

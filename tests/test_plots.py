@@ -747,3 +747,18 @@ def test_final_scores_need_the_window_and_say_when_budgets_differ(tmp_path, caps
     write_fake_run(root, "Hopper-v4__ppo_baseline__1__1700000000", range(0, 79872 + 1, 4096), 100.0)  # a rollout less
     final_performance.main(final_performance.Args(**args, final_window=3))
     assert "different steps" not in capsys.readouterr().err
+
+
+def test_analyze_refuses_a_bad_learning_rate_and_names_n1_runs(runs, tmp_path):
+    """Audit: plasticity --learning-rate -1 was a traceback deep in Adam, and fallback-course on a run of one net
+    advised passing "a later iteration_<i>.pt", which such a run never writes."""
+    message = error_of(lambda: analyze.plasticity(analyze.Plasticity(checkpoint=runs["cascade"][0], out=str(tmp_path),
+                                                                     learning_rate=-1.0)))
+    assert "--learning-rate -1.0: Adam's learning rate must be positive" in message, message
+    single = cpc.train(cpc.Args(seed=1, n=1, k=512, track_dir=str(tmp_path / "single"), **TINY))["run_dir"]
+    message = error_of(lambda: analyze.fallback_course(analyze.FallbackCourse(checkpoint=single, out=str(tmp_path))))
+    assert message.endswith("holds 1 base net, which has no fallback; its run has no other (--n 1): pass a "
+                            "checkpoint of a run with --n 2 or more"), message
+    first = os.path.join(runs["cascade"][0], "iteration_1.pt")  # a run of two nets: its later file is the advice
+    message = error_of(lambda: analyze.fallback_course(analyze.FallbackCourse(checkpoint=first, out=str(tmp_path))))
+    assert message.endswith("pass a later iteration_<i>.pt or the run's checkpoint.pt"), message
