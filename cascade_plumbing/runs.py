@@ -33,6 +33,8 @@ from .tracking import check_wandb, finish_wandb
 
 def check_track_dir(track_dir: str) -> None:
     """Run folders can be created under `track_dir` (probed in its nearest existing ancestor, nothing left behind)."""
+    if not track_dir.strip():
+        fail("--track-dir is empty; pass the folder the run folders go to (default: runs)")
     if os.path.exists(track_dir) and not os.path.isdir(track_dir):
         fail(f"--track-dir {track_dir} is a file, not a folder; pass a folder for the run folders")
     ancestor = os.path.abspath(track_dir)
@@ -43,6 +45,14 @@ def check_track_dir(track_dir: str) -> None:
     except OSError as exc:
         fail(f"cannot create run folders under --track-dir {track_dir} ({exc.strerror or exc} in {ancestor}); "
              "pass a writable folder")
+
+
+def check_exp_name(exp_name: str) -> None:
+    """The experiment name is one part of a run folder's name (`<env_id>__<exp_name>__<seed>__<time>`), which the
+    plots parse: not empty, no folder separator."""
+    if not exp_name.strip() or "/" in exp_name or os.sep in exp_name:
+        fail(f"--exp-name {exp_name!r}: it names the run folder <env_id>__<exp_name>__<seed>__<time>; give a "
+             "non-empty name without '/'")
 
 
 def check_seed(seed: int) -> None:
@@ -331,6 +341,7 @@ def check_common_settings(args: Any) -> None:
     if getattr(args, "checkpoint_every", 0) < 0:
         fail(f"--checkpoint-every must be >= 0 (0: only the checkpoints a run always writes; got {args.checkpoint_every})")
     check_track_dir(args.track_dir)
+    check_exp_name(args.exp_name)
     if args.track:
         check_wandb()
 
@@ -376,6 +387,9 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     that has finished its work is not stopped any more (its checkpoint is final), and resuming a finished run
     does nothing."""
     args = tyro.cli(args_type, description=description)
+    for flag in ("evaluate", "resume"):  # an empty path (`--resume "$RUN"` with RUN unset) would start a new run
+        if getattr(args, flag) is not None and not getattr(args, flag).strip():
+            fail(f"--{flag} is empty; pass a run folder or a checkpoint file")
     if args.evaluate:
         evaluate_only(args, explicit_fields(args_type, sys.argv[1:]), evaluate_saved)
         return

@@ -196,3 +196,22 @@ def test_a_stopped_evaluation_is_one_line(signum, capsys):
     line = capsys.readouterr().err.strip("\r\n")
     assert line == (f"stopped by {signal.Signals(signum).name}: the evaluation of runs/some_run was stopped before it "
                     "ended (nothing to resume: run it again)"), line
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_run_names_and_empty_paths_are_refused(script, tmp_path, monkeypatch):
+    """Audit: an empty --resume / --evaluate (`--resume "$RUN"` with RUN unset) started a new full-length run; an
+    --exp-name with a '/' or an empty --track-dir was a FileNotFoundError traceback (and left a folder)."""
+    module = importlib.import_module(script)
+    monkeypatch.chdir(tmp_path)
+    for overrides, message in [(dict(exp_name="a/b"), "--exp-name 'a/b': it names the run folder"),
+                               (dict(exp_name=" "), "--exp-name ' ': it names the run folder"),
+                               (dict(track_dir=""), "--track-dir is empty")]:
+        args = module.Args(env_id=ENV.get(script, "Hopper-v4"), **{"track_dir": str(tmp_path / "runs"), **overrides})
+        with pytest.raises(SystemExit) as stop:
+            module.train(args)
+        assert str(stop.value).startswith(f"error: {message}") and "\n" not in str(stop.value), str(stop.value)
+    for flag in ("--resume", "--evaluate"):
+        assert error_line_in_process(f"{script}.py", flag, "", "--track-dir", str(tmp_path / "runs")) == \
+            f"error: {flag} is empty; pass a run folder or a checkpoint file"
+    assert list(tmp_path.iterdir()) == []
