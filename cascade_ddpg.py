@@ -586,7 +586,8 @@ def validate(args: Args) -> None:
         fail(f"--adam-eps must be > 0 (got {args.adam_eps})")
     if args.policy_frequency < 1:
         fail("--policy-frequency must be at least 1")
-    check_replay_settings(args, bounds_needed_because="the actor's tanh outputs are rescaled to finite bounds")
+    check_replay_settings(args, bounds_needed_because="the actor's tanh outputs are rescaled to finite bounds",
+                          frequencies={"--policy-frequency": "the actor's and the targets' update"})
 
 
 # /2: the paper's-code defaults (nets, LR, new-net restart, clipping); /3: checkpoints inside an iteration, with the

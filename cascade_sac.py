@@ -614,7 +614,9 @@ def validate(args: Args, new_run: bool = True) -> None:
         fail("--policy-frequency and --target-network-frequency must be at least 1")
     if new_run and args.autotune and args.alpha != Args.alpha:  # (a run started before this check resumes)
         fail(f"--alpha {args.alpha} has no effect with --autotune (alpha is learned, starting at 1.0); drop one of them")
-    check_replay_settings(args, bounds_needed_because="SAC squashes actions into finite bounds")
+    check_replay_settings(args, bounds_needed_because="SAC squashes actions into finite bounds",
+                          frequencies={"--policy-frequency": "the actor's update",
+                                       "--target-network-frequency": "the target critics' update"})
 
 
 # /2: the paper's-code defaults (alpha, log-std, new-net restart, clipping); /3: checkpoints inside an iteration,

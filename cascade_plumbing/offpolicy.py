@@ -65,17 +65,25 @@ def step_with_gradients(optimizer: torch.optim.Optimizer, params: list[torch.Ten
         param.grad = None
 
 
-def check_replay_settings(args: Any, bounds_needed_because: str) -> None:
-    """The settings both off-policy scripts have, checked after the script's own: the clipping, the warm-up, the
-    replay buffer (and its memory), the evaluation, the env (a bounded Box action space, flat observations).
-    One line each, before anything is created (`RunRecord` checks the renderer of --capture-video)."""
+def check_replay_settings(args: Any, bounds_needed_because: str, frequencies: dict[str, str]) -> None:
+    """The settings both off-policy scripts have, checked after the script's own: the clipping, the warm-up and the
+    update `frequencies` (flag -> what it paces), the replay buffer (and its memory), the evaluation, the env (a
+    bounded Box action space, flat observations). One line each, before anything is created (`RunRecord` checks the
+    renderer of --capture-video)."""
     if not args.obs_reward_clip >= 0:
         fail(f"--obs-reward-clip must be >= 0 (0: no clipping; got {args.obs_reward_clip})")
     if args.batch_size < 1 or args.learning_starts < 0:
         fail("--batch-size must be at least 1 and --learning-starts at least 0")
-    if args.k <= args.learning_starts:
-        fail(f"--k {args.k} must exceed --learning-starts {args.learning_starts} (each emptied buffer is first "
-             "filled with learning-starts steps before updates resume)")
+    # an iteration updates at its steps learning_starts + 1 .. k - 1 (CleanRL's `global_step > learning_starts`)
+    update_steps = args.k - args.learning_starts - 1
+    if update_steps < 1:
+        fail(f"--k {args.k} must exceed --learning-starts {args.learning_starts} + 1 (each emptied buffer is first "
+             "filled with learning-starts steps before updates resume, so a shorter iteration never updates)")
+    for flag, paced in frequencies.items():
+        value = getattr(args, flag.lstrip("-").replace("-", "_"))
+        if value > update_steps:  # every update step of an iteration must have a chance to be a multiple of it
+            fail(f"{flag} {value} exceeds the {update_steps:,} update steps of an iteration (--k minus "
+                 f"--learning-starts minus 1): {paced} would never run; pass at most {update_steps:,}")
     if args.buffer_size < max(args.batch_size, args.learning_starts + 1):
         fail(f"--buffer-size {args.buffer_size} must hold at least --batch-size and --learning-starts + 1 rows")
     if not 0.0 < args.tau <= 1.0:

@@ -630,15 +630,20 @@ BAD_INPUT = [
     (dict(n=0), "--n must be at least 1"),
     (dict(fallback_init=1.0), "--fallback-init"),
     (dict(fallback_init=0.0), "--fallback-init"),
-    (dict(k=100, learning_starts=100), "must exceed --learning-starts"),
+    (dict(k=100, learning_starts=100), "must exceed --learning-starts 100 + 1"),
+    (dict(k=101, learning_starts=100), "must exceed --learning-starts 100 + 1"),  # (no update step: it did not learn)
+    # a frequency beyond an iteration's update steps: the actor never trained, the run exited 0 (audit)
+    (dict(k=600, learning_starts=100, policy_frequency=500), "--policy-frequency 500 exceeds the 499 update steps"),
 ]
 
 
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
-@pytest.mark.parametrize("overrides,message", [*BAD_INPUT, (dict(autotune=True, alpha=0.5), "--alpha 0.5 has no effect")])
+@pytest.mark.parametrize("overrides,message", [
+    *BAD_INPUT, (dict(autotune=True, alpha=0.5), "--alpha 0.5 has no effect"),
+    (dict(k=600, learning_starts=100, target_network_frequency=1000), "--target-network-frequency 1000 exceeds")])
 def test_bad_input_stops_before_anything_is_written(algo, overrides, message, tmp_path):
     mod = SCRIPTS[algo]
-    if "autotune" in overrides and algo == "ddpg":
+    if ("autotune" in overrides or "target_network_frequency" in overrides) and algo == "ddpg":
         pytest.skip("a SAC setting")
     with pytest.raises(SystemExit) as stop:
         mod.train(mod.Args(track_dir=str(tmp_path / "runs"), **overrides))
