@@ -371,13 +371,26 @@ def expand(args: Args) -> list[Run]:
         seeds = [int(s) for s in args.seeds]
     except ValueError:
         fail(f"--seeds must be integers (got {' '.join(args.seeds)})")
+    bad = [s for s in seeds if not 0 <= s < 2**32]
+    if bad:
+        fail(f"--seeds {bad[0]}: a seed must be a non-negative integer below 2**32 (numpy and gymnasium refuse others)")
+    if not seeds or not args.envs:
+        fail(f"nothing to run: {'--seeds' if not seeds else '--envs'} is given with no value")
     templates: list[tuple[str, str, list[str]]] = []
     for name in args.preset:
         if name not in PRESETS:
             fail(f"unknown preset '{name}'; choose from {', '.join(PRESETS)}")
         templates += [(label, script, shlex.split(flags)) for label, script, flags in PRESETS[name][1]]
     for i, template in enumerate(args.command):
-        parts = shlex.split(template)
+        try:
+            parts = shlex.split(template)
+        except ValueError as exc:  # an unclosed quote
+            fail(f"--command '{template}' cannot be read as a command line ({exc}); quote the whole template once")
+        if parts and os.path.dirname(parts[0]):
+            name = os.path.basename(parts[0])
+            fail(f"--command '{template}': name one of the training scripts of the repository root, without a "
+                 f"folder (e.g. {name if os.path.isfile(os.path.join(ROOT, name)) else CASCADE}): the sweep runs it "
+                 f"from {ROOT}")
         if not parts or not parts[0].endswith(".py") or not os.path.isfile(os.path.join(ROOT, parts[0])):
             fail(f"unknown script in --command '{template}': expected one of our scripts, e.g. {CASCADE}")
         flags, label = parts[1:], f"{parts[0][:-3]}_{i + 1}"
@@ -386,8 +399,10 @@ def expand(args: Args) -> list[Run]:
             at = names.index("--exp-name")
             if "=" in flags[at]:
                 label, flags = flags[at].partition("=")[2], flags[:at] + flags[at + 1 :]
-            else:
+            elif at + 1 < len(flags):
                 label, flags = flags[at + 1], flags[:at] + flags[at + 2 :]
+            else:
+                fail(f"--exp-name in '{template}' has no value; give the template's name after it")
         templates.append((label, parts[0], flags))
     if not (math.isfinite(args.scale) and args.scale > 0):
         fail(f"--scale must be positive (got {args.scale}); e.g. 0.01 for a quick check, 1 for the paper's budgets")
@@ -657,10 +672,58 @@ def check_envs(runs: list[Run]) -> None:
                  "the discrete scripts on it")
 
 
+def tyro_reason(text: str) -> str:
+    """The line that says what is wrong in tyro's boxed parse error (its second line of text; the first is a title
+    such as "Value error")."""
+    lines = [line.strip(" -\u2500\u2502\u256d\u256e\u2570\u256f") for line in text.splitlines()]
+    lines = [line for line in lines if line]
+    return lines[1] if len(lines) > 1 else (lines[0] if lines else "its arguments are refused")
+
+
+def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
+    """Each new run's command line parsed by its script's Args and checked by the script's own input checks (its
+    `validate`, or `resolve` in the discrete scripts), once per template and env, before any run starts: a flag
+    the script does not have, a value it refuses or a budget too small for it is one line now, instead of one
+    failed run per seed and template at the end of the sweep."""
+    import contextlib
+    import importlib
+    import io
+
+    if ROOT not in sys.path:
+        sys.path.insert(0, ROOT)
+    checked = set()
+    for run, command, _, _ in todo:
+        if "--resume" in command[2:3] or (run.script, tuple(run.flags), run.env_id) in checked:
+            continue  # a started run was checked when it started (and resumes with what it saved)
+        checked.add((run.script, tuple(run.flags), run.env_id))
+        template = shlex.join([run.script, *run.flags])
+        module = importlib.import_module(run.script[: -len(".py")])
+        check = getattr(module, "validate", None) or getattr(module, "resolve", None)
+        if not hasattr(module, "Args") or check is None:
+            fail(f"--command '{template}': {run.script} is not one of the training scripts (it has no Args and "
+                 f"input checks); sweep one of them, e.g. {CASCADE}")
+        argv = command[2 : command.index("--quiet") + 1] + run.cadence  # the run's flags, W&B's left out
+        quiet = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(quiet), contextlib.redirect_stdout(io.StringIO()):
+                script_args = tyro.cli(module.Args, args=argv)
+        except SystemExit:
+            fail(f"'{template}': {run.script} does not accept it: {tyro_reason(quiet.getvalue())}")
+        try:
+            with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+                check(script_args)  # (warnings each run prints itself are not repeated here)
+        except SystemExit as exc:
+            fail(f"'{template}' on {run.env_id}: {str(exc).removeprefix('error: ')}")
+
+
 def sweep() -> None:
     args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
     if args.workers < 1:
         fail(f"--workers must be at least 1 (got {args.workers})")
+    if not args.status_every > 0:
+        fail(f"--status-every must be a positive number of seconds (got {args.status_every})")
+    if not args.cpus_per_run > 0:
+        fail(f"--cpus-per-run must be positive (got {args.cpus_per_run})")
     if args.list_presets:
         for name, (what, entries) in PRESETS.items():
             print(f"{name:14s} {what} ({len(entries)} runs per env and seed)")
@@ -669,6 +732,13 @@ def sweep() -> None:
     check_envs(runs)
     sweep_dir = args.sweep_dir or os.path.join("sweeps", "_".join(args.preset) or "custom")
     sweep_dir = os.path.abspath(sweep_dir)
+    blocking = sweep_dir
+    while not os.path.isdir(blocking) and blocking != os.path.dirname(blocking):
+        if os.path.exists(blocking):
+            fail(f"--sweep-dir {args.sweep_dir}: {blocking} is a file, not a folder; pass a folder for the sweep")
+        blocking = os.path.dirname(blocking)
+    if not (os.path.isfile(args.python) and os.access(args.python, os.X_OK)):
+        fail(f"--python {args.python} is not an executable file; pass the interpreter the runs use (default: this one)")
     track_dir = os.path.join(sweep_dir, "runs")
     tracking = tracking_flags(args, sweep_dir)
     todo, skipped = [], 0
@@ -679,6 +749,7 @@ def sweep() -> None:
             continue
         todo.append((run, run.command(args.python, track_dir, tracking),
                      os.path.join(sweep_dir, "logs", f"{run.run_id}.log"), marker))
+    check_templates(todo)
     if args.dry_run:
         for _, command, _, _ in todo:
             print(shlex.join(command))

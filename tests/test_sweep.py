@@ -144,10 +144,46 @@ def test_bad_templates_and_scales_are_one_line():
              # checked up front, not one failed run per seed and template later
              (["--preset", "sac", "--envs", "CartPole-v1"], "--envs CartPole-v1 has a Discrete action space, and "
               "cascade_sac.py needs a Box (continuous) one"),
-             (["--command", "./cascade_ddpg.py", "--envs", "CartPole-v1"], "cascade_ddpg.py needs a Box"),
+             (["--command", "cascade_ddpg.py", "--envs", "CartPole-v1"], "cascade_ddpg.py needs a Box"),
              (["--preset", "discrete", "--envs", "Hopper-v4", "Hoper-v4"], "unknown env id 'Hoper-v4'")]
     for extra, message in cases:
         assert message in error_line(run_script("sweep.py", *extra, "--dry-run")), extra
+
+
+def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
+    """Audit: a flag the script does not have, a value it refuses, a template it cannot read, a script that is not a
+    training script, a bad --python or seed: each passed --dry-run and the sweep's start, then failed one run per
+    seed and template (the summary naming tyro's box border), or was a traceback. Now one line up front, each."""
+    sweep_dir = ["--sweep-dir", str(tmp_path / "sweep")]
+    cases = [(["--command", "cascade_sac.py --bogus 3"], "cascade_sac.py does not accept it: Unrecognized options: "
+              "--bogus, 3"),
+             (["--command", "cascade_sac.py --k abc"], "does not accept it: Error parsing --k: invalid literal"),
+             (["--command", "cascade_sac.py --k"], "does not accept it: Missing value for argument '--k'"),
+             (["--command", "cascade_sac.py --n 0"], "'cascade_sac.py --n 0' on Hopper-v4: --n must be at least 1"),
+             (["--command", "cascade_sac.py --k 600 --learning-starts 100 --policy-frequency 1000"],
+              "--policy-frequency 1000 exceeds the 499 update steps"),
+             (["--preset", "sac", "--scale", "0.000001"], "--k 0 must exceed --learning-starts 0 + 1"),
+             (["--preset", "discrete", "--envs", "FrozenLake-v1"], "on FrozenLake-v1: FrozenLake-v1 has a Discrete "
+              "observation space"),
+             (["--command", "cascade_sac.py --exp-name"], "--exp-name in 'cascade_sac.py --exp-name' has no value"),
+             (["--command", "cascade_sac.py --exp-name 'x"], "cannot be read as a command line (No closing quotation)"),
+             (["--command", "./cascade_sac.py"], "without a folder (e.g. cascade_sac.py)"),
+             (["--command", "plots/analyze.py"], "without a folder (e.g. cascade_ppo_continuous.py)"),
+             (["--command", "sweep.py"], "sweep.py is not one of the training scripts"),
+             (["--preset", "sac", "--seeds", "-1"], "--seeds -1: a seed must be a non-negative integer"),
+             (["--preset", "sac", "--seeds"], "nothing to run: --seeds is given with no value"),
+             (["--preset", "sac", "--envs"], "nothing to run: --envs is given with no value"),
+             (["--preset", "sac", "--status-every", "0"], "--status-every must be a positive number"),
+             (["--preset", "sac", "--cpus-per-run", "0"], "--cpus-per-run must be positive"),
+             (["--preset", "sac", "--python", str(tmp_path / "nope")], "is not an executable file"),
+             (["--preset", "sac", "--sweep-dir", os.path.join(__file__, "sub")], f"{__file__} is a file, not a folder")]
+    for extra, message in cases:
+        flags = extra if "--sweep-dir" in extra else [*extra, *sweep_dir]
+        assert message in error_line(run_script("sweep.py", *flags, "--dry-run")), extra
+    assert not (tmp_path / "sweep").exists()
+    # the checks see each run as it will run: scaled, with the sweep's own flags (a good grid passes)
+    proc = run_script("sweep.py", "--preset", "sac", "--scale", "0.01", *sweep_dir, "--dry-run")
+    assert proc.returncode == 0 and "# 2 runs to do" in proc.stdout, proc.stderr
 
 
 def test_scale_works_for_sac_and_ddpg(tmp_path):
@@ -228,7 +264,7 @@ def test_rerun_with_other_budget_starts_a_new_run(tmp_path):
 
 def test_local_sweep_reports_failure_and_skips_finished_runs(tmp_path):
     args = ["--command", TINY + " --exp-name good_a", TINY + " --fallback-init 0.9 --exp-name good_b",
-            TINY.replace("--n 1", "--n 0") + " --exp-name broken",
+            TINY + " --learning-rate 1e30 --exp-name broken",  # (fails as it trains: past the sweep's checks)
             "--envs", "Hopper-v4", "--seeds", "1", "--workers", "2", "--sweep-dir", tmp_path]
     first = run_script("sweep.py", *args)
     assert first.returncode == 1, first.stdout + first.stderr
@@ -236,12 +272,12 @@ def test_local_sweep_reports_failure_and_skips_finished_runs(tmp_path):
     assert "FAILED Hopper-v4__broken__1__" in first.stdout and str(tmp_path / "logs") in first.stdout
     # the summary carries the run's one-line error, so a grid's failures read without opening each log
     [failed] = [line for line in first.stdout.splitlines() if line.startswith("  FAILED")]
-    assert "(exit 1): error: --n must be at least 1" in failed, failed
+    assert "(exit 1): error: the loss became non-finite" in failed, failed
     broken_logs = [f for f in os.listdir(tmp_path / "logs") if "broken" in f]
     assert len(broken_logs) == 1
-    assert "--n must be at least 1" in open(tmp_path / "logs" / broken_logs[0]).read()
+    assert "the loss became non-finite" in open(tmp_path / "logs" / broken_logs[0]).read()
     assert len(os.listdir(tmp_path / "done")) == 2
-    assert sorted(d.split("__")[1] for d in os.listdir(tmp_path / "runs")) == ["good_a", "good_b"]
+    assert sorted(d.split("__")[1] for d in os.listdir(tmp_path / "runs")) == ["broken", "good_a", "good_b"]
     for setup in os.listdir(tmp_path / "runs"):  # one run folder inside each setup's folder
         assert len(os.listdir(tmp_path / "runs" / setup)) == 1
 
