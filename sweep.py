@@ -46,6 +46,7 @@ import tyro
 
 from cascade_plumbing.errors import fail
 from cascade_plumbing.processes import run_dies_with_parent
+from cascade_plumbing.runs import explicit_fields, refuse_idle_flags
 from cascade_plumbing.tracking import check_wandb, duration
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
@@ -710,6 +711,7 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
         except SystemExit:
             fail(f"'{template}': {run.script} does not accept it: {tyro_reason(quiet.getvalue())}")
         try:
+            refuse_idle_flags(script_args, explicit_fields(module.Args, argv))
             with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
                 check(script_args)  # (warnings each run prints itself are not repeated here)
         except SystemExit as exc:

@@ -149,6 +149,25 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "", rea
     return checkpoint
 
 
+def refuse_overwriting_later_work(checkpoint: dict) -> None:
+    """--resume of an earlier file of a run (an iteration_<i>.pt) continues in its folder and overwrites what the
+    run did after it: refused while the folder's own checkpoint.pt is readable and further on. (Where checkpoint.pt
+    is missing or corrupt, continuing from the iteration file is the way on, as the corrupt-file error advises.)"""
+    path = checkpoint["path"]
+    latest = os.path.join(os.path.dirname(path), CHECKPOINT_NAME)
+    if os.path.basename(path) == CHECKPOINT_NAME or not os.path.isfile(latest):
+        return
+    try:
+        later = torch.load(latest, map_location="cpu", weights_only=False)
+        later_step = int(later["global_step"])
+    except Exception:  # unreadable: the iteration file is what is left to continue from
+        return
+    if later_step > checkpoint["global_step"]:
+        fail(f"--resume {path}: the run went on to global_step={later_step:,} ({latest}); continuing from "
+             f"global_step={checkpoint['global_step']:,} would overwrite that work in the same folder. Resume "
+             f"{latest} instead, or move it away first to redo the run from here")
+
+
 def intact_beside(path: str, reader_flag: str = "") -> str:
     """For a run's unreadable checkpoint.pt: "; " and the newest intact iteration_<i>.pt beside it, with the command
     that continues the run from it (in the same folder), or "" if there is none. With `reader_flag` (a caller that

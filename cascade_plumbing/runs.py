@@ -25,7 +25,7 @@ import torch
 import tyro
 from threadpoolctl import ThreadpoolController
 
-from .checkpoints import CHECKPOINT_NAME, repair_iteration_files
+from .checkpoints import CHECKPOINT_NAME, refuse_overwriting_later_work, repair_iteration_files
 from .envs import end_env_workers
 from .errors import check_ranges, fail
 from .tracking import check_wandb, finish_wandb
@@ -129,6 +129,24 @@ def explicit_fields(args_type: type, argv: list[str]) -> set[str]:
     return given
 
 
+def refuse_idle_flags(args: Any, given: set[str]) -> None:
+    """A flag given for a training run that it cannot affect is refused in one line (as --evaluate refuses the flags it
+    ignores): the user meant something the run would not do, e.g. --deterministic for training's evaluation."""
+    rules = [("members", "applies to --evaluate only" + (" (training's evaluation of each net: --eval-members)"
+                                                          if hasattr(args, "eval_members") else "")),
+             ("deterministic", "applies to --evaluate only (training evaluates the stochastic policy, as the paper)")]
+    if not args.track:
+        rules += [(name, "applies with --track only") for name in ("wandb_project_name", "wandb_entity", "wandb_group")]
+    if getattr(args, "eval_every", 1) == 0:
+        rules += [(name, "has no effect with --eval-every 0 (evaluation off)")
+                  for name in ("eval_episodes", "eval_members", "eval_deterministic")]
+    if getattr(args, "n", 2) == 1 and not getattr(args, "start_full", False):
+        rules += [(name, "has no effect with --n 1 (no base net is added)") for name in ("keep_buffer", "reset_critic")]
+    for name, why in rules:
+        if name in given:
+            fail(f"--{name.replace('_', '-')} {why}; leave it out")
+
+
 def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
     """The checkpoint's settings; a conflicting flag on the command line is an error."""
     saved = type(args)(**checkpoint["args"])
@@ -204,6 +222,27 @@ def no_space(folder: str, run_dir: str | None) -> None:
     removed = f" (its folder {run_dir} is removed)" if run_dir is not None and remove_unresumable_run(run_dir) else ""
     fail(f"no space left on {folder} before the run's first checkpoint, so there is nothing to resume{removed}; free "
          "some space and start the run again")
+
+
+def out_of_memory(exc: BaseException) -> bool:
+    """Whether `exc` is an allocation that failed (Python's MemoryError, or torch's CPU allocator)."""
+    return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and "can't allocate memory" in str(exc))
+
+
+def no_memory(exc: BaseException, run_dir: str | None) -> None:
+    """Stop on a failed allocation (nets or batches too large for this machine) in one line, like a full disk: the
+    intact checkpoint to continue from, or, before the first one, the half-made folder removed."""
+    script = os.path.basename(sys.argv[0])
+    what = str(exc).splitlines()[0].strip() if str(exc) else type(exc).__name__
+    what = what.split("DefaultCPUAllocator: ")[-1].split(" Error code")[0].rstrip(". ")
+    advice = "smaller nets or batches (--hidden-size, --num-envs, --batch-size, --buffer-size) or a machine with more"
+    checkpoint = None if run_dir is None else os.path.join(run_dir, CHECKPOINT_NAME)
+    if checkpoint is not None and os.path.exists(checkpoint):
+        fail(f"out of memory ({what}); the last checkpoint {checkpoint} is intact: free some memory and continue with: "
+             f"python {script} --resume {run_dir}")
+    removed = f" (its folder {run_dir} is removed)" if run_dir is not None and remove_unresumable_run(run_dir) else ""
+    fail(f"out of memory before the run's first checkpoint ({what}), so there is nothing to resume{removed}; "
+         f"start again with {advice}")
 
 
 def disk_full(exc: BaseException) -> bool:
@@ -394,9 +433,13 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         evaluate_only(args, explicit_fields(args_type, sys.argv[1:]), evaluate_saved)
         return
     checkpoint = None
+    given = explicit_fields(args_type, sys.argv[1:])
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
-        args = resumed_args(args, checkpoint, explicit_fields(args_type, sys.argv[1:]))
+        refuse_overwriting_later_work(checkpoint)
+        args = resumed_args(args, checkpoint, given)
+    refuse_idle_flags(args, given)
+    if checkpoint is not None:
         if finished(args, checkpoint):
             if "iteration" in checkpoint:  # a kill while the last iteration_<i>.pt was copied: rebuild it all the same
                 repair_iteration_files(os.path.dirname(checkpoint["path"]), checkpoint, at_iteration_end=True)
@@ -426,6 +469,9 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
             end_env_workers()
             run_dir = this_run_dir(checkpoint)
             no_space(os.path.abspath(run_dir or args.track_dir), run_dir)
+        if out_of_memory(exc):  # e.g. a --hidden-size that does not fit: one line, not torch's traceback
+            end_env_workers()
+            no_memory(exc, this_run_dir(checkpoint))
         raise
     # The work is done and saved: a stop from here on must not turn a finished run into a failed one (at
     # interpreter exit Python resets its own handlers to the default, which would die by the signal silently).

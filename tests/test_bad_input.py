@@ -215,3 +215,36 @@ def test_run_names_and_empty_paths_are_refused(script, tmp_path, monkeypatch):
         assert error_line_in_process(f"{script}.py", flag, "", "--track-dir", str(tmp_path / "runs")) == \
             f"error: {flag} is empty; pass a run folder or a checkpoint file"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_nets_too_large_for_the_machine_are_one_line_and_leave_no_folder(tmp_path):
+    """Audit: --hidden-size 1000000 was torch's allocator traceback and left a run folder holding only an event
+    file (every script: the handler is run_main's). 10^7 units: a 10^7 x 10^7 layer is 400 TB, beyond any machine's
+    address space, so the allocation fails everywhere, overcommit or not."""
+    line = error_line_in_process("cascade_ppo_continuous.py", "--env-id", "Hopper-v4", "--hidden-size", "10000000",
+                                 "--track-dir", str(tmp_path / "runs"))
+    assert line.startswith("error: out of memory before the run's first checkpoint (can't allocate memory"), line
+    assert line.endswith("start again with smaller nets or batches (--hidden-size, --num-envs, --batch-size, "
+                         "--buffer-size) or a machine with more"), line
+    assert not (tmp_path / "runs").exists() or os.listdir(tmp_path / "runs") == []
+
+
+IDLE_FLAGS = [  # (script, flags, the line): flags a training run cannot act on, accepted silently before (audit)
+    ("cascade_ppo_continuous", ["--members"], "--members applies to --evaluate only (training's evaluation of each "
+                                              "net: --eval-members)"),
+    ("cascade_ppo_discrete", ["--deterministic"], "--deterministic applies to --evaluate only"),
+    ("ppo_baseline", ["--wandb-group", "g"], "--wandb-group applies with --track only"),
+    ("cascade_sac", ["--eval-every", "0", "--eval-deterministic"], "--eval-deterministic has no effect with "
+                                                                   "--eval-every 0"),
+    ("cascade_ddpg", ["--eval-every", "0", "--eval-episodes", "3"], "--eval-episodes has no effect with --eval-every 0"),
+    ("cascade_ddpg", ["--n", "1", "--keep-buffer"], "--keep-buffer has no effect with --n 1"),
+    ("cascade_sac", ["--n", "1", "--reset-critic"], "--reset-critic has no effect with --n 1"),
+]
+
+
+@pytest.mark.parametrize("script,flags,message", IDLE_FLAGS, ids=[f"{s}-{f[-1]}" for s, f, _ in IDLE_FLAGS])
+def test_flags_a_training_run_cannot_act_on_are_refused(script, flags, message, tmp_path):
+    line = error_line_in_process(f"{script}.py", "--env-id", ENV.get(script, "Hopper-v4"), *flags,
+                                 "--track-dir", str(tmp_path / "runs"))
+    assert line.startswith(f"error: {message}") and line.endswith("; leave it out"), line
+    assert not (tmp_path / "runs").exists()

@@ -568,6 +568,30 @@ def test_a_corrupt_checkpoint_names_the_newest_intact_iteration_file(finished_ru
                                                                              str(run_dir))
 
 
+def test_resuming_an_earlier_file_of_a_run_does_not_overwrite_its_later_work(finished_run, tmp_path, capsys):
+    """Audit: `--resume <run>/iteration_1.pt` of a finished run retrained iteration 2 in the same folder, overwrote
+    its checkpoint.pt and iteration_2.pt and logged the same steps twice, exit 0. Refused while the folder's
+    checkpoint.pt is readable and further on; with it moved away (the user's choice), the run is redone from there."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run["run_dir"], run_dir)
+    before = digest(run_dir)
+    earlier = run_dir / "iteration_1.pt"
+    line = error_line_in_process("cascade_ppo_continuous.py", "--resume", str(earlier))
+    assert line == (f"error: --resume {earlier}: the run went on to global_step={finished_run['global_step']:,} "
+                    f"({run_dir / 'checkpoint.pt'}); continuing from global_step={torch.load(earlier, weights_only=False)['global_step']:,} "
+                    f"would overwrite that work in the same folder. Resume {run_dir / 'checkpoint.pt'} instead, or "
+                    "move it away first to redo the run from here"), line
+    assert digest(run_dir) == before  # nothing written
+    # the end of the run itself is no earlier file: it says there is nothing to resume, as checkpoint.pt does
+    last = run_dir / "iteration_2.pt"
+    code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(last))
+    assert code == 0 and "is the end of the run" in out, (out, message)
+    os.rename(run_dir / "checkpoint.pt", tmp_path / "moved_away.pt")
+    code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(earlier))
+    assert code == 0 and message == "", message
+    assert cpc.load_checkpoint(str(run_dir))["global_step"] == finished_run["global_step"]
+
+
 # A run whose TensorBoard writes fail with ENOSPC (a full disk), from the first write after its first checkpoint
 # ("after") or from its 21st write on, long before its first checkpoint ("before").
 FULL_DISK_DRIVER = """

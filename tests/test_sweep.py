@@ -6,6 +6,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+from unittest import mock
 
 import pytest
 
@@ -163,6 +164,7 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--command", "cascade_sac.py --k 600 --learning-starts 100 --policy-frequency 1000"],
               "--policy-frequency 1000 exceeds the 499 update steps"),
              (["--preset", "sac", "--scale", "0.000001"], "--k 0 must exceed --learning-starts 0 + 1"),
+             (["--command", "cascade_sac.py --n 1 --keep-buffer"], "--keep-buffer has no effect with --n 1"),
              (["--preset", "discrete", "--envs", "FrozenLake-v1"], "on FrozenLake-v1: FrozenLake-v1 has a Discrete "
               "observation space"),
              (["--command", "cascade_sac.py --exp-name"], "--exp-name in 'cascade_sac.py --exp-name' has no value"),
@@ -177,9 +179,12 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--preset", "sac", "--cpus-per-run", "0"], "--cpus-per-run must be positive"),
              (["--preset", "sac", "--python", str(tmp_path / "nope")], "is not an executable file"),
              (["--preset", "sac", "--sweep-dir", os.path.join(__file__, "sub")], f"{__file__} is a file, not a folder")]
-    for extra, message in cases:
+    for extra, message in cases:  # in process (each a subprocess: ~4 s of imports each)
         flags = extra if "--sweep-dir" in extra else [*extra, *sweep_dir]
-        assert message in error_line(run_script("sweep.py", *flags, "--dry-run")), extra
+        with mock.patch.object(sys, "argv", ["sweep.py", *flags, "--dry-run"]), pytest.raises(SystemExit) as stop:
+            sweep.sweep()
+        assert str(stop.value).startswith("error: ") and "\n" not in str(stop.value), (extra, stop.value)
+        assert message in str(stop.value), (extra, stop.value)
     assert not (tmp_path / "sweep").exists()
     # the checks see each run as it will run: scaled, with the sweep's own flags (a good grid passes)
     proc = run_script("sweep.py", "--preset", "sac", "--scale", "0.01", *sweep_dir, "--dry-run")
