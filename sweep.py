@@ -673,12 +673,24 @@ def check_envs(runs: list[Run]) -> None:
                  "the discrete scripts on it")
 
 
-def tyro_reason(text: str) -> str:
-    """The line that says what is wrong in tyro's boxed parse error (its second line of text; the first is a title
-    such as "Value error")."""
-    lines = [line.strip(" -\u2500\u2502\u256d\u256e\u2570\u256f") for line in text.splitlines()]
-    lines = [line for line in lines if line]
-    return lines[1] if len(lines) > 1 else (lines[0] if lines else "its arguments are refused")
+def tyro_reason(text: str) -> str | None:
+    """The line that says what is wrong in tyro's parse error at the end of `text`, or None if it ends otherwise.
+    Drawn as a box (a terminal) or as plain text with dashed rules, the error is a title, a rule, the reason, then
+    further sections, and ends with "For full helptext, ..." and the program's name."""
+    raw = [line.strip() for line in text.splitlines() if line.strip()]
+    lines = [line.strip("\u2502\u256d\u256e\u2570\u256f").strip() for line in raw]
+    ends = [i for i, line in enumerate(lines) if line.startswith("For full helptext")]
+    if not ends or ends[-1] < len(lines) - 4:
+        return None
+
+    def rule(line: str) -> bool:
+        return len(line) > 3 and set(line) <= {"-", "\u2500"}
+
+    window = range(max(ends[-1] - 40, 0), ends[-1])
+    tops = [i for i in window if raw[i].startswith("\u256d")]  # a box: its title is in the top border
+    starts = tops[-1:] or [i for i in window if rule(lines[i])][:1]  # plain: the title, then a rule
+    reasons = [line for line in lines[starts[0] + 1 : ends[-1]] if line and not rule(line)] if starts else []
+    return reasons[0] if reasons else None
 
 
 def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
@@ -709,7 +721,8 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
             with contextlib.redirect_stderr(quiet), contextlib.redirect_stdout(io.StringIO()):
                 script_args = tyro.cli(module.Args, args=argv)
         except SystemExit:
-            fail(f"'{template}': {run.script} does not accept it: {tyro_reason(quiet.getvalue())}")
+            reason = tyro_reason(quiet.getvalue()) or quiet.getvalue().strip().splitlines()[-1:] or ["refused"]
+            fail(f"'{template}': {run.script} does not accept it: {reason if isinstance(reason, str) else reason[0]}")
         try:
             refuse_idle_flags(script_args, explicit_fields(module.Args, argv))
             with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
@@ -726,6 +739,8 @@ def sweep() -> None:
         fail(f"--status-every must be a positive number of seconds (got {args.status_every})")
     if not args.cpus_per_run > 0:
         fail(f"--cpus-per-run must be positive (got {args.cpus_per_run})")
+    if args.backend == "local" and args.ray_address != Args.ray_address:
+        fail(f"--ray-address {args.ray_address} applies to --backend ray only; add --backend ray, or leave it out")
     if args.list_presets:
         for name, (what, entries) in PRESETS.items():
             print(f"{name:14s} {what} ({len(entries)} runs per env and seed)")
@@ -802,7 +817,7 @@ def last_line(log: str) -> str:
             lines = [line.strip() for line in f.read().decode(errors="replace").splitlines() if line.strip()]
     except OSError:
         return "(no log)"
-    line = lines[-1] if lines else "(empty log)"
+    line = tyro_reason("\n".join(lines)) or (lines[-1] if lines else "(empty log)")  # a parse error: why, not its box
     return line if len(line) <= 300 else line[:297] + "..."
 
 

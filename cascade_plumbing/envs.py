@@ -27,11 +27,28 @@ REWARD_CLIP = 10.0
 NORM_EPS = 1e-8  # the epsilon of gymnasium's NormalizeObservation
 
 
+def makeable(env_id: str) -> bool:
+    """Whether gymnasium can make `env_id` here (its package installed), for the suggestions of an unknown id."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            gym.make(env_id).close()
+        return True
+    except Exception:
+        return False
+
+
 def check_env_id(env_id: str, examples: str = "Ant-v4, Hopper-v5") -> None:
     if env_id not in gym.envs.registry:
         import difflib
 
-        close = difflib.get_close_matches(env_id, list(gym.envs.registry), n=3)
+        base = env_id.split("-v")[0].lower()
+        version = env_id.rsplit("-v", 1)[-1] if "-v" in env_id else None
+        versions = sorted((i for i in gym.envs.registry if i.split("-v")[0].lower() == base),  # the same version,
+                          key=lambda i: (i.rsplit("-v", 1)[-1] == version, i.rsplit("-v", 1)[-1].zfill(4)),
+                          reverse=True)  # then the newest first
+        candidates = list(dict.fromkeys(versions + difflib.get_close_matches(env_id, list(gym.envs.registry), n=6)))
+        close = [i for i in candidates if makeable(i)][:3]  # not Hopper-v3, which needs the retired mujoco-py
         hint = f" Did you mean {', '.join(close)}?" if close else ""
         fail(f"unknown env id '{env_id}'.{hint} (see gymnasium's registry, e.g. {examples})")
 

@@ -248,3 +248,16 @@ def test_flags_a_training_run_cannot_act_on_are_refused(script, flags, message, 
                                  "--track-dir", str(tmp_path / "runs"))
     assert line.startswith(f"error: {message}") and line.endswith("; leave it out"), line
     assert not (tmp_path / "runs").exists()
+
+
+def test_an_unknown_env_id_suggests_ids_that_can_be_made_here():
+    """Audit: `--env-id Hopper` suggested Hopper-v3, which needs the retired mujoco-py and cannot be made here;
+    now the versions of that name that can be made, the one asked for first."""
+    from cascade_plumbing.envs import check_env_id
+
+    for asked, suggested in [("Hopper", "Hopper-v5, Hopper-v4"), ("hopper-v4", "Hopper-v4, Hopper-v5")]:
+        with pytest.raises(SystemExit) as stop:
+            check_env_id(asked)
+        assert f"unknown env id '{asked}'. Did you mean {suggested}" in str(stop.value), str(stop.value)
+        assert "Hopper-v3" not in str(stop.value) and "Hopper-v2" not in str(stop.value)
+    assert "Hopper-v3" in gym.envs.registry  # registered all the same: the suggestion filters it out

@@ -177,6 +177,7 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--preset", "sac", "--envs"], "nothing to run: --envs is given with no value"),
              (["--preset", "sac", "--status-every", "0"], "--status-every must be a positive number"),
              (["--preset", "sac", "--cpus-per-run", "0"], "--cpus-per-run must be positive"),
+             (["--preset", "sac", "--ray-address", "10.0.0.1:6379"], "applies to --backend ray only"),
              (["--preset", "sac", "--python", str(tmp_path / "nope")], "is not an executable file"),
              (["--preset", "sac", "--sweep-dir", os.path.join(__file__, "sub")], f"{__file__} is a file, not a folder")]
     for extra, message in cases:  # in process (each a subprocess: ~4 s of imports each)
@@ -428,3 +429,31 @@ def test_a_sweep_folder_has_one_sweep_and_a_killed_sweeps_runs_stop(tmp_path):
             assert "are still stopping" in str(refused) and time.time() < deadline, str(refused)
             time.sleep(0.1)
     assert not os.path.exists(tmp_path / "done")
+
+
+def test_a_failed_runs_summary_line_is_the_reason_inside_a_parse_errors_box(tmp_path, capsys):
+    """Audit: a run stopped by tyro's parse error (a resumed run's flags, which the up-front check does not see)
+    was summarized by the box's bottom border line."""
+    import contextlib
+    import io
+
+    import tyro
+
+    import cascade_sac
+
+    box = io.StringIO()
+    with contextlib.redirect_stderr(box), pytest.raises(SystemExit):
+        tyro.cli(cascade_sac.Args, args=["--bogus"])
+    log = tmp_path / "run.log"
+    log.write_text("global_step=0, eval/episodic_return=36.1\n" + box.getvalue())
+    assert sweep.last_line(str(log)) == "Unrecognized options: --bogus"
+    # as tyro draws it on a terminal (a box, its title in the top border)
+    log.write_text("global_step=0\n\u256d\u2500 Value error \u2500\u2500\u2500\u256e\n"
+                   "\u2502 Error parsing --k: invalid literal for int() with base 10: 'abc' \u2502\n"
+                   "\u2502 \u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n\u2502 Argument helptext: \u2502\n"
+                   "\u2502 \u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n"
+                   "\u2502 For full helptext, see cascade_sac.py --help \u2502\n"
+                   "\u2570\u2500\u2500\u2500\u2500\u2500\u2500\u256f\n")
+    assert sweep.last_line(str(log)) == "Error parsing --k: invalid literal for int() with base 10: 'abc'"
+    log.write_text("error: --n must be at least 1 (got 0)\n")
+    assert sweep.last_line(str(log)) == "error: --n must be at least 1 (got 0)"
