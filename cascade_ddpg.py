@@ -604,11 +604,11 @@ def saved_nets(actor: CascadeActor, target_actor: CascadeActor, qf: QNetworks, q
             "actor_optimizer": actor_optimizer.state_dict(), "logged": logged}
 
 
-def load_checkpoint(path: str) -> dict:
+def load_checkpoint(path: str, reader_flag: str = "") -> dict:
     """A cascade_ddpg checkpoint (`runs/<run>`, its latest, or a file); one line if it is missing, corrupt, another
     script's, or of an older cascade_ddpg.py (which it cannot resume exactly)."""
     return load_script_checkpoint(path, CHECKPOINT_FORMAT,
-                                  older_note=", before checkpoints held the replay buffer")
+                                  older_note=", before checkpoints held the replay buffer", reader_flag=reader_flag)
 
 
 def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu", key: str = "actor") -> CascadeActor:

@@ -612,9 +612,9 @@ def learner_state(actor: CascadeActor, critic: nn.Module, optimizer: torch.optim
             "num_frozen": actor.num_frozen, "critic": critic.state_dict(), "optimizer": optimizer.state_dict()}
 
 
-def load_checkpoint(path: str) -> dict:
+def load_checkpoint(path: str, reader_flag: str = "") -> dict:
     """`runs/<run>` (its latest checkpoint) or a checkpoint file of this script; one-line error otherwise."""
-    return checkpoints.load_checkpoint(path, CHECKPOINT_FORMAT)
+    return checkpoints.load_checkpoint(path, CHECKPOINT_FORMAT, reader_flag=reader_flag)
 
 
 def finished(args: Args, checkpoint: dict) -> bool:

@@ -583,9 +583,9 @@ class RunLog(RunRecord):
 CHECKPOINT_FORMAT = "ppo_baseline/2"
 
 
-def load_checkpoint(path: str) -> dict:
+def load_checkpoint(path: str, reader_flag: str = "") -> dict:
     """A run folder's latest checkpoint, or a checkpoint file, of this script (one-line error otherwise)."""
-    return checkpoints.load_checkpoint(path, CHECKPOINT_FORMAT)
+    return checkpoints.load_checkpoint(path, CHECKPOINT_FORMAT, reader_flag=reader_flag)
 
 
 def finished(args: Args, checkpoint: dict) -> bool:

@@ -429,9 +429,9 @@ def learner_state(actor: nn.Module, critic: nn.Module, optimizer: torch.optim.Op
             "optimizer": optimizer.state_dict()}
 
 
-def load_checkpoint(path: str) -> dict:
+def load_checkpoint(path: str, reader_flag: str = "") -> dict:
     """`runs/<run>` (its latest checkpoint) or a checkpoint file of this script; one-line error otherwise."""
-    return checkpoints.load_checkpoint(path, CHECKPOINT_FORMAT)
+    return checkpoints.load_checkpoint(path, CHECKPOINT_FORMAT, reader_flag=reader_flag)
 
 
 def finished(args: Args, checkpoint: dict) -> bool:

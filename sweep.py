@@ -46,7 +46,6 @@ import tyro
 
 from cascade_plumbing.errors import fail
 from cascade_plumbing.processes import run_dies_with_parent
-from cascade_plumbing.runs import explicit_fields, refuse_idle_flags
 from cascade_plumbing.tracking import check_wandb, duration
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
@@ -702,6 +701,8 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
     import importlib
     import io
 
+    from cascade_plumbing.runs import explicit_fields, refuse_idle_flags  # (torch: only when a sweep is run)
+
     if ROOT not in sys.path:
         sys.path.insert(0, ROOT)
     checked = set()
@@ -715,7 +716,7 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
         if not hasattr(module, "Args") or check is None:
             fail(f"--command '{template}': {run.script} is not one of the training scripts (it has no Args and "
                  f"input checks); sweep one of them, e.g. {CASCADE}")
-        argv = command[2 : command.index("--quiet") + 1] + run.cadence  # the run's flags, W&B's left out
+        argv = command[2:]  # the new run's command as it will run (tracking flags and cadence included)
         quiet = io.StringIO()
         try:
             with contextlib.redirect_stderr(quiet), contextlib.redirect_stdout(io.StringIO()):
@@ -737,8 +738,8 @@ def sweep() -> None:
         fail(f"--workers must be at least 1 (got {args.workers})")
     if not args.status_every > 0:
         fail(f"--status-every must be a positive number of seconds (got {args.status_every})")
-    if not args.cpus_per_run > 0:
-        fail(f"--cpus-per-run must be positive (got {args.cpus_per_run})")
+    if args.backend == "ray" and not args.cpus_per_run >= 0:
+        fail(f"--cpus-per-run must be >= 0 (got {args.cpus_per_run})")
     if args.backend == "local" and args.ray_address != Args.ray_address:
         fail(f"--ray-address {args.ray_address} applies to --backend ray only; add --backend ray, or leave it out")
     if args.list_presets:
@@ -754,8 +755,9 @@ def sweep() -> None:
         if os.path.exists(blocking):
             fail(f"--sweep-dir {args.sweep_dir}: {blocking} is a file, not a folder; pass a folder for the sweep")
         blocking = os.path.dirname(blocking)
-    if not (os.path.isfile(args.python) and os.access(args.python, os.X_OK)):
-        fail(f"--python {args.python} is not an executable file; pass the interpreter the runs use (default: this one)")
+    if args.backend == "local" and shutil.which(args.python) is None:  # (on Ray it must exist on the nodes)
+        fail(f"--python {args.python} is not an executable (a path, or a name on PATH); pass the interpreter the runs "
+             "use (default: this one)")
     track_dir = os.path.join(sweep_dir, "runs")
     tracking = tracking_flags(args, sweep_dir)
     todo, skipped = [], 0

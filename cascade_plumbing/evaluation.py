@@ -167,12 +167,12 @@ def save_video_of_one_episode(checkpoint_path: str, mode: str, video: Evaluation
     print(f"video of one episode (return {episode_return:.1f}): {path}")
 
 
-def open_saved_model(args: Any, load_checkpoint: Callable[[str], dict]) -> dict:
+def open_saved_model(args: Any, load_checkpoint: Callable[..., dict]) -> dict:
     """The start of --evaluate: --eval-episodes checked, the checkpoint `args.evaluate` loaded, with
     --capture-video its env's renderer tried (one line now, before any episode is run), torch's threads set."""
     if args.eval_episodes < 1:
         fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
-    checkpoint = load_checkpoint(args.evaluate)
+    checkpoint = load_checkpoint(args.evaluate, reader_flag="--evaluate")  # (a corrupt file's advice: --evaluate)
     if args.capture_video:
         make_render_env(checkpoint["args"]["env_id"]).close()
     set_threads(args.torch_threads)

@@ -74,16 +74,18 @@ def check_replay_settings(args: Any, bounds_needed_because: str, frequencies: di
         fail(f"--obs-reward-clip must be >= 0 (0: no clipping; got {args.obs_reward_clip})")
     if args.batch_size < 1 or args.learning_starts < 0:
         fail("--batch-size must be at least 1 and --learning-starts at least 0")
-    # an iteration updates at its steps learning_starts + 1 .. k - 1 (CleanRL's `global_step > learning_starts`)
-    update_steps = args.k - args.learning_starts - 1
-    if update_steps < 1:
-        fail(f"--k {args.k} must exceed --learning-starts {args.learning_starts} + 1 (each emptied buffer is first "
-             "filled with learning-starts steps before updates resume, so a shorter iteration never updates)")
+    # an iteration updates at its steps first .. k - 1: after learning_starts + 1 stored transitions of its own
+    # (CleanRL's `global_step > learning_starts`, restarted per net), or of the whole run with --no-restart-on-new-net
+    first = args.learning_starts + (1 if getattr(args, "restart_on_new_net", True) else 0)
+    if args.k - 1 < first:
+        fail(f"--k {args.k} must exceed --learning-starts {args.learning_starts}"
+             f"{' + 1' if first > args.learning_starts else ''} (the buffer is first filled with learning-starts "
+             "steps before updates start, so a shorter iteration never updates)")
     for flag, paced in frequencies.items():
         value = getattr(args, flag.lstrip("-").replace("-", "_"))
-        if value > update_steps:  # every update step of an iteration must have a chance to be a multiple of it
-            fail(f"{flag} {value} exceeds the {update_steps:,} update steps of an iteration (--k minus "
-                 f"--learning-starts minus 1): {paced} would never run; pass at most {update_steps:,}")
+        if (args.k - 1) // value * value < first:  # an update runs at the steps that are multiples of it
+            fail(f"{flag} {value}: no update step of an iteration ({first:,} to {args.k - 1:,}) is a multiple of it, "
+                 f"so {paced} would never run; pass one up to {args.k - first:,} (each has a multiple there)")
     if args.buffer_size < max(args.batch_size, args.learning_starts + 1):
         fail(f"--buffer-size {args.buffer_size} must hold at least --batch-size and --learning-starts + 1 rows")
     if not 0.0 < args.tau <= 1.0:

@@ -130,16 +130,14 @@ def explicit_fields(args_type: type, argv: list[str]) -> set[str]:
 
 
 def refuse_idle_flags(args: Any, given: set[str]) -> None:
-    """A flag given for a training run that it cannot affect is refused in one line (as --evaluate refuses the flags it
-    ignores): the user meant something the run would not do, e.g. --deterministic for training's evaluation."""
+    """A flag given for a new training run that it cannot affect is refused in one line (as --evaluate refuses the
+    flags it ignores): the user meant something the run would not do, e.g. --deterministic for training's evaluation,
+    or an ablation that a run of one net cannot show. (Not on --resume: a run started before this check goes on.)"""
     rules = [("members", "applies to --evaluate only" + (" (training's evaluation of each net: --eval-members)"
                                                           if hasattr(args, "eval_members") else "")),
              ("deterministic", "applies to --evaluate only (training evaluates the stochastic policy, as the paper)")]
     if not args.track:
         rules += [(name, "applies with --track only") for name in ("wandb_project_name", "wandb_entity", "wandb_group")]
-    if getattr(args, "eval_every", 1) == 0:
-        rules += [(name, "has no effect with --eval-every 0 (evaluation off)")
-                  for name in ("eval_episodes", "eval_members", "eval_deterministic")]
     if getattr(args, "n", 2) == 1 and not getattr(args, "start_full", False):
         rules += [(name, "has no effect with --n 1 (no base net is added)") for name in ("keep_buffer", "reset_critic")]
     for name, why in rules:
@@ -229,13 +227,15 @@ def out_of_memory(exc: BaseException) -> bool:
     return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and "can't allocate memory" in str(exc))
 
 
-def no_memory(exc: BaseException, run_dir: str | None) -> None:
+def no_memory(exc: BaseException, run_dir: str | None, args: Any) -> None:
     """Stop on a failed allocation (nets or batches too large for this machine) in one line, like a full disk: the
     intact checkpoint to continue from, or, before the first one, the half-made folder removed."""
     script = os.path.basename(sys.argv[0])
     what = str(exc).splitlines()[0].strip() if str(exc) else type(exc).__name__
     what = what.split("DefaultCPUAllocator: ")[-1].split(" Error code")[0].rstrip(". ")
-    advice = "smaller nets or batches (--hidden-size, --num-envs, --batch-size, --buffer-size) or a machine with more"
+    sizes = [name for name in ("hidden_size", "critic_hidden_size", "num_envs", "num_steps", "batch_size", "buffer_size")
+             if hasattr(args, name)]
+    advice = f"smaller nets or batches ({', '.join('--' + n.replace('_', '-') for n in sizes)}) or a machine with more"
     checkpoint = None if run_dir is None else os.path.join(run_dir, CHECKPOINT_NAME)
     if checkpoint is not None and os.path.exists(checkpoint):
         fail(f"out of memory ({what}); the last checkpoint {checkpoint} is intact: free some memory and continue with: "
@@ -438,7 +438,8 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         checkpoint = load_checkpoint(args.resume)
         refuse_overwriting_later_work(checkpoint)
         args = resumed_args(args, checkpoint, given)
-    refuse_idle_flags(args, given)
+    else:
+        refuse_idle_flags(args, given)
     if checkpoint is not None:
         if finished(args, checkpoint):
             if "iteration" in checkpoint:  # a kill while the last iteration_<i>.pt was copied: rebuild it all the same
@@ -471,7 +472,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
             no_space(os.path.abspath(run_dir or args.track_dir), run_dir)
         if out_of_memory(exc):  # e.g. a --hidden-size that does not fit: one line, not torch's traceback
             end_env_workers()
-            no_memory(exc, this_run_dir(checkpoint))
+            no_memory(exc, this_run_dir(checkpoint), args)
         raise
     # The work is done and saved: a stop from here on must not turn a finished run into a failed one (at
     # interpreter exit Python resets its own handlers to the default, which would die by the signal silently).

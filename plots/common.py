@@ -432,14 +432,16 @@ def warn_if_settings_differ(key: tuple[str, str], runs: list[Run], split_by: Seq
 # ----------------------------------------------------------------------------------------------
 # Statistics over seeds
 # ----------------------------------------------------------------------------------------------
-def stack_seeds(runs: Sequence[Run], tag: str) -> tuple[np.ndarray, np.ndarray]:
+def stack_seeds(runs: Sequence[Run], tag: str, curve: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Steps logged by every run and the values there: steps [T], values [runs, T].
 
-    Steps that only some runs reached (a run still going or killed) are left out, with a note.
+    Steps that only some runs reached (a run still going or killed) are left out, with a note. For a `curve`, a
+    group whose runs share at most one step (while some log more) is an error naming the short run: its line would
+    be drawn empty.
     """
     per_run = [r.series(tag).by_step() for r in runs]
     common = sorted(set.intersection(*(set(p) for p in per_run)))
-    if len(common) < 2 and max(len(p) for p in per_run) >= 2:  # the curve would be one point or none: drawn empty
+    if curve and len(common) < 2 and max(len(p) for p in per_run) >= 2:
         shortest = min(zip(runs, per_run), key=lambda rp: (len(rp[1]), max(rp[1], default=-1)))
         reach = f"stops at step {max(shortest[1]):,}" if shortest[1] else "logs none"
         shared = f"only step {common[0]:,}" if common else "no step"

@@ -74,7 +74,7 @@ def final_per_net(runs: list[common.Run], prefix: str, nets: list[int], window: 
 
 
 def curve(ax, runs: list[common.Run], tag: str, color: str, label: str) -> None:
-    steps, values = common.stack_seeds(runs, tag)
+    steps, values = common.stack_seeds(runs, tag, curve=True)
     mean, sem = common.mean_sem(values)
     ax.plot(steps, mean, color=color, lw=1.4, label=label)
     ax.fill_between(steps, mean - sem, mean + sem, color=color, alpha=0.2, lw=0)

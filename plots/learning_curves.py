@@ -67,7 +67,7 @@ def main(args: Args) -> list[str]:
         shared_markers = len({tuple(m) for m in marker_sets.values() if m}) == 1
         for label, runs in groups:
             color = selection.color(label)
-            steps, values = common.stack_seeds(runs, args.scalar)
+            steps, values = common.stack_seeds(runs, args.scalar, curve=True)
             mean, sem = common.mean_sem(values)
             ax.plot(steps, mean, color=color, lw=1.6, label=label)
             ax.fill_between(steps, mean - sem, mean + sem, color=color, alpha=0.2, lw=0)

@@ -551,6 +551,9 @@ def test_a_corrupt_checkpoint_names_the_newest_intact_iteration_file(finished_ru
     assert line.startswith(f"error: cannot read checkpoint {run_dir / 'checkpoint.pt'}"), line
     assert line.endswith(f"is {intact} (the end of iteration 1): continue the run from there with: "
                          f"python cascade_ppo_continuous.py --resume {intact}"), line
+    # --evaluate continues no run: its advice is its own flag (review: it advised --resume)
+    line = error_line_in_process("cascade_ppo_continuous.py", "--evaluate", str(run_dir))
+    assert line.endswith(f"is {intact} (the end of iteration 1): pass that with --evaluate"), line
     code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(intact))
     assert code == 0 and message == "", message
     assert cpc.load_checkpoint(str(run_dir))["global_step"] == finished_run["global_step"]  # the run is whole again

@@ -632,15 +632,16 @@ BAD_INPUT = [
     (dict(fallback_init=0.0), "--fallback-init"),
     (dict(k=100, learning_starts=100), "must exceed --learning-starts 100 + 1"),
     (dict(k=101, learning_starts=100), "must exceed --learning-starts 100 + 1"),  # (no update step: it did not learn)
-    # a frequency beyond an iteration's update steps: the actor never trained, the run exited 0 (audit)
-    (dict(k=600, learning_starts=100, policy_frequency=500), "--policy-frequency 500 exceeds the 499 update steps"),
+    # no multiple of the frequency among an iteration's update steps (101..599): the actor never trained, exit 0 (audit)
+    (dict(k=600, learning_starts=100, policy_frequency=600), "--policy-frequency 600: no update step of an iteration "
+                                                             "(101 to 599) is a multiple of it"),
 ]
 
 
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
 @pytest.mark.parametrize("overrides,message", [
     *BAD_INPUT, (dict(autotune=True, alpha=0.5), "--alpha 0.5 has no effect"),
-    (dict(k=600, learning_starts=100, target_network_frequency=1000), "--target-network-frequency 1000 exceeds")])
+    (dict(k=600, learning_starts=100, target_network_frequency=1000), "--target-network-frequency 1000: no update")])
 def test_bad_input_stops_before_anything_is_written(algo, overrides, message, tmp_path):
     mod = SCRIPTS[algo]
     if ("autotune" in overrides or "target_network_frequency" in overrides) and algo == "ddpg":
@@ -650,6 +651,22 @@ def test_bad_input_stops_before_anything_is_written(algo, overrides, message, tm
     text = str(stop.value)
     assert text.startswith("error:") and message in text and "\n" not in text
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+def test_update_frequencies_are_refused_only_where_no_update_step_is_a_multiple(algo, tmp_path):
+    """The check is exact: steps 101..599 hold a multiple of 500 (the actor updates there), of 599 too, not of 600;
+    with --no-restart-on-new-net updates start one step earlier (step learning_starts, 100)."""
+    mod = SCRIPTS[algo]
+    for restart, frequency, refused in [(True, 500, False), (True, 599, False), (True, 600, True),
+                                        (False, 100, False), (True, 100, True)]:
+        args = mod.Args(env_id="Pendulum-v1", k=600 if frequency > 100 else 101, learning_starts=100,
+                        policy_frequency=frequency, restart_on_new_net=restart, track_dir=str(tmp_path / "runs"))
+        if refused:
+            with pytest.raises(SystemExit, match="is a multiple of it|must exceed --learning-starts 100 \\+ 1"):
+                mod.validate(args)
+        else:
+            mod.validate(args)
 
 
 @pytest.mark.parametrize("script", ["cascade_sac.py", "cascade_ddpg.py"])

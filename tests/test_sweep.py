@@ -162,7 +162,7 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--command", "cascade_sac.py --k"], "does not accept it: Missing value for argument '--k'"),
              (["--command", "cascade_sac.py --n 0"], "'cascade_sac.py --n 0' on Hopper-v4: --n must be at least 1"),
              (["--command", "cascade_sac.py --k 600 --learning-starts 100 --policy-frequency 1000"],
-              "--policy-frequency 1000 exceeds the 499 update steps"),
+              "--policy-frequency 1000: no update step of an iteration (101 to 599) is a multiple of it"),
              (["--preset", "sac", "--scale", "0.000001"], "--k 0 must exceed --learning-starts 0 + 1"),
              (["--command", "cascade_sac.py --n 1 --keep-buffer"], "--keep-buffer has no effect with --n 1"),
              (["--preset", "discrete", "--envs", "FrozenLake-v1"], "on FrozenLake-v1: FrozenLake-v1 has a Discrete "
@@ -176,9 +176,10 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--preset", "sac", "--seeds"], "nothing to run: --seeds is given with no value"),
              (["--preset", "sac", "--envs"], "nothing to run: --envs is given with no value"),
              (["--preset", "sac", "--status-every", "0"], "--status-every must be a positive number"),
-             (["--preset", "sac", "--cpus-per-run", "0"], "--cpus-per-run must be positive"),
+             (["--preset", "sac", "--backend", "ray", "--cpus-per-run", "-1"], "--cpus-per-run must be >= 0"),
              (["--preset", "sac", "--ray-address", "10.0.0.1:6379"], "applies to --backend ray only"),
-             (["--preset", "sac", "--python", str(tmp_path / "nope")], "is not an executable file"),
+             (["--preset", "sac", "--python", str(tmp_path / "nope")], "is not an executable (a path, or a name"),
+             (["--preset", "sac", "--python", "no-such-python3"], "is not an executable (a path, or a name"),
              (["--preset", "sac", "--sweep-dir", os.path.join(__file__, "sub")], f"{__file__} is a file, not a folder")]
     for extra, message in cases:  # in process (each a subprocess: ~4 s of imports each)
         flags = extra if "--sweep-dir" in extra else [*extra, *sweep_dir]
@@ -190,6 +191,13 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
     # the checks see each run as it will run: scaled, with the sweep's own flags (a good grid passes)
     proc = run_script("sweep.py", "--preset", "sac", "--scale", "0.01", *sweep_dir, "--dry-run")
     assert proc.returncode == 0 and "# 2 runs to do" in proc.stdout, proc.stderr
+    # ... with the tracking flags the sweep adds (review: --wandb-entity in a template was refused without them),
+    # a --python found on PATH, and a template's own --quiet (the check had cut the command there)
+    proc = run_script("sweep.py", "--command", "cascade_sac.py --quiet --n 0", *sweep_dir, "--dry-run")
+    assert "--n must be at least 1" in error_line(proc)
+    proc = run_script("sweep.py", "--command", "cascade_sac.py --wandb-entity team", "--track", "--python", "python3",
+                      "--scale", "0.01", *sweep_dir, "--dry-run", env={**os.environ, "WANDB_MODE": "offline"})
+    assert proc.returncode == 0 and "--wandb-entity team" in proc.stdout, proc.stderr
 
 
 def test_scale_works_for_sac_and_ddpg(tmp_path):
