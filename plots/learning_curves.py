@@ -76,7 +76,7 @@ def main(args: Args) -> list[str]:
                     ax.axvline(step, color=color, ls=":", lw=0.9, alpha=0.7)
             csv_rows += [(env, label, int(s), float(m), float(e), len(runs)) for s, m, e in zip(steps, mean, sem)]
             if len(steps):
-                md_rows.append((env, label, len(runs), f"{int(steps[-1]):,}", common.fmt(mean[-1], sem[-1], 1)))
+                md_rows.append((env, label, len(runs), f"{int(steps[-1]):,}", common.fmt(mean[-1], sem[-1] if len(runs) > 1 else None, 1)))
         if args.markers and shared_markers:
             for step in next(m for m in marker_sets.values() if m):
                 ax.axvline(step, color="0.45", ls=":", lw=0.9, label="base net added")

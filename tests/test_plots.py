@@ -89,6 +89,8 @@ def test_one_seed_works(runs, tmp_path):
     last = read_csv(tmp_path / "out" / "learning_curves.csv")[-1]
     assert (last["seeds"], float(last["sem"])) == ("1", 0.0)
     assert float(last["mean"]) == pytest.approx(last_values(runs["cascade"][:1], "eval/episodic_return")[0])
+    row = open(tmp_path / "out" / "learning_curves.md").read().splitlines()[-1]
+    assert "±" not in row, row  # one seed has no standard error (the table said "± 0.0")
 
 
 def test_a_relaunched_seed_counts_once(runs, tmp_path, capsys):
