@@ -145,6 +145,10 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "", rea
     if saved != checkpoint_format:
         what = f"a {saved.split('/')[0]} checkpoint" if "/" in saved else "not one of ours"
         fail(f"{path} is not a {script} checkpoint (it is {what}); pass one that {script}.py wrote")
+    missing = [key for key in ("args", "global_step") if key not in checkpoint]  # (every checkpoint a script writes)
+    if missing:
+        fail(f"{path} is an incomplete {script} checkpoint (no {', '.join(missing)}): not one that {script}.py wrote; "
+             "pass a run folder or a checkpoint file it wrote")
     checkpoint["path"] = path
     return checkpoint
 

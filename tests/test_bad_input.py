@@ -270,3 +270,18 @@ def test_a_run_started_with_an_idle_flag_still_resumes(tmp_path, capsys):
     run_dir = cascade_ddpg.train(cascade_ddpg.Args(keep_buffer=True, track_dir=str(tmp_path), **flags))["run_dir"]
     code, out, message = cli_in_process(capsys, "cascade_ddpg.py", "--resume", run_dir, "--n", "1", "--keep-buffer")
     assert code == 0 and "is the end of the run" in out, (out, message)
+
+
+@pytest.mark.parametrize("script", ["cascade_ppo_continuous", "cascade_sac"])
+def test_a_hand_made_file_with_our_format_is_one_line(script, tmp_path):
+    """Audit: a file holding only our format key (made by hand, or a truncated save of another tool) gave KeyError
+    tracebacks with --evaluate and --resume."""
+    import torch
+
+    module = importlib.import_module(script)
+    path = tmp_path / "made_by_hand.pt"
+    torch.save({"format": module.CHECKPOINT_FORMAT}, path)
+    for flag in ("--evaluate", "--resume"):
+        line = error_line_in_process(f"{script}.py", flag, str(path))
+        assert line == (f"error: {path} is an incomplete {script} checkpoint (no args, global_step): not one that "
+                        f"{script}.py wrote; pass a run folder or a checkpoint file it wrote"), line
