@@ -46,7 +46,7 @@ import tyro
 
 from cascade_plumbing.errors import fail
 from cascade_plumbing.processes import run_dies_with_parent
-from cascade_plumbing.tracking import check_wandb, duration
+from cascade_plumbing.tracking import PROGRESS_NAME, check_wandb, duration
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
 
@@ -80,7 +80,7 @@ class Args:
     list_presets: bool = False
     """print the presets and exit"""
     status_every: float = 30.0
-    """seconds between progress lines"""
+    """seconds between progress lines (counts, then each running run's own progress line: steps, SPS, ETA)"""
     track: bool = False
     """log every run to Weights & Biases too (the scripts' --track), the runs of this sweep in one W&B group; not part of a run's identity, so a re-run with it resumes the unfinished runs"""
     wandb_project_name: str = "cascade"
@@ -500,6 +500,7 @@ class Tracker:
         self.stopped: list[Run] = []
         self.active: dict[str, Run] = {}  # started, not finished
         self.durations: list[float] = []
+        self.runs_dir = ""  # where the runs' folders are (their progress lines), once the sweep knows it
         self.lock = threading.Lock()
         self.last = 0.0
 
@@ -535,6 +536,17 @@ class Tracker:
             eta = duration(left)
         print(f"[sweep] {self.done} done, {self.running} {self.running_label}, {len(self.failed)} failed, {pending} pending "
               f"of {self.total} | ETA {eta}", flush=True)
+        if self.runs_dir:  # how far each running run is: the progress line it keeps in its folder
+            shown = list(self.active.values())
+            for run in shown[:8]:
+                try:  # (none yet: the run has just started; or its folder is being removed)
+                    files = glob.glob(os.path.join(glob.escape(self.runs_dir), run.run_id, "*", PROGRESS_NAME))
+                    with open(max(files, key=os.path.getmtime)) as f:
+                        print(f"  {run.run_id}: {f.readline().strip()}", flush=True)
+                except (ValueError, OSError):
+                    continue
+            if len(shown) > 8:
+                print(f"  ... and {len(shown) - 8} more running", flush=True)
 
 
 def run_local(todo: list[tuple[Run, list[str], str, str]], workers: int, tracker: Tracker) -> None:
@@ -788,6 +800,7 @@ def sweep() -> None:
     # Ray schedules the tasks itself: submitted ones are running or waiting for a free CPU
     tracker = Tracker(len(todo), parallel, args.status_every,
                       "running" if args.backend == "local" else "running or queued on the cluster")
+    tracker.runs_dir = track_dir
     try:
         if args.backend == "local":
             run_local(todo, args.workers, tracker)

@@ -29,7 +29,7 @@ from .runs import (
     set_rng_states,
     unlock_run_dir,
 )
-from .tracking import VIDEO_ROOT, Progress, finish_wandb, finished_videos, log_new_videos, start_wandb
+from .tracking import PROGRESS_NAME, VIDEO_ROOT, Progress, finish_wandb, finished_videos, log_new_videos, start_wandb
 
 
 def wait_to_name_events_after(run_dir: str) -> None:
@@ -95,7 +95,8 @@ class RunRecord:
             envs.call("record_videos_to", self.video_folder)
         self.videos_sent = finished_videos(self.video_folder)  # a resumed run's earlier ones went to W&B already
         self.checkpoint_path = os.path.join(self.run_dir, CHECKPOINT_NAME)
-        self.progress = Progress(total_steps, args.quiet)
+        self.progress = Progress(total_steps, args.quiet, file=os.path.join(self.run_dir, PROGRESS_NAME),
+                                 line=progress_line)
         self.progress_line = progress_line
         self.start_time = time.time()
         self.last_checkpoint_step = 0
@@ -130,8 +131,7 @@ class RunRecord:
         self.writer.add_scalar("charts/SPS", int(sps), global_step)
         if self.args.track:
             log_new_videos(self.video_folder, self.videos_sent, global_step)
-        if self.progress_line:
-            self.progress.update(global_step, sps, size)
+        self.progress.update(global_step, sps, size)  # (the line only with `progress_line`; the file always)
 
     def log_fallbacks(self, fallback: torch.Tensor, contribution: torch.Tensor, global_step: int) -> None:
         """The fallback metrics: means over a batch of states of each net's lambda [n-1, B] and share [n, B]."""

@@ -78,26 +78,44 @@ def finish_wandb(exit_code: int) -> None:
         wandb.tensorboard.unpatch()
 
 
-class Progress:
-    """One self-updating line on a terminal; plain lines every `interval` seconds otherwise."""
+PROGRESS_NAME = "progress.txt"  # in the run folder: the latest progress line (sweep.py shows it)
 
-    def __init__(self, total_steps: int, quiet: bool, interval: float = 30.0):
-        self.total, self.quiet, self.interval = total_steps, quiet, interval
+
+class Progress:
+    """One self-updating line on a terminal; plain lines every `interval` seconds otherwise (`line`, unless
+    `quiet`). With `file`, the same line is also kept in that file, rewritten every `interval` seconds even when
+    quiet: how far a run in the background is (sweep.py's progress lines read it)."""
+
+    def __init__(self, total_steps: int, quiet: bool, interval: float = 30.0, file: str | None = None,
+                 line: bool = True):
+        self.total, self.quiet, self.interval, self.file, self.line = total_steps, quiet, interval, file, line
         self.tty = sys.stdout.isatty()
-        self.last_print = 0.0
+        self.last_print = self.last_write = 0.0
         self.last_eval: float | None = None
         self.note = ""  # e.g. that a fast path was switched off
 
     def update(self, step: int, sps: float, size: int, force: bool = False) -> None:
         now = time.time()
-        if self.quiet or (not force and now - self.last_print < (0.5 if self.tty else self.interval)):
+        print_due = self.line and not self.quiet and (force or now - self.last_print >= (0.5 if self.tty else
+                                                                                          self.interval))
+        write_due = self.file is not None and (force or now - self.last_write >= self.interval)
+        if not (print_due or write_due):
             return
-        self.last_print = now
         eta = (self.total - step) / max(sps, 1e-9)
         ev = "-" if self.last_eval is None else f"{self.last_eval:.1f}"
         line = (f"{step:>10,}/{self.total:,} steps ({100 * step / self.total:5.1f}%) | {sps:6.0f} SPS | "
                 f"{size} net(s) | eval {ev} | ETA {duration(eta)}{self.note}")
-        print(f"\r{line}" if self.tty else line, end="" if self.tty else "\n", flush=True)
+        if print_due:
+            self.last_print = now
+            print(f"\r{line}" if self.tty else line, end="" if self.tty else "\n", flush=True)
+        if write_due:
+            self.last_write = now
+            try:  # replaced whole, so a reader never sees half a line; a failed write (a full disk) is not the run's
+                with open(f"{self.file}.new", "w") as f:
+                    f.write(line.strip() + "\n")
+                os.replace(f"{self.file}.new", self.file)
+            except OSError:
+                pass
 
     def message(self, text: str) -> None:
         """A normal line that does not garble the progress line."""

@@ -465,3 +465,38 @@ def test_a_failed_runs_summary_line_is_the_reason_inside_a_parse_errors_box(tmp_
     assert sweep.last_line(str(log)) == "Error parsing --k: invalid literal for int() with base 10: 'abc'"
     log.write_text("error: --n must be at least 1 (got 0)\n")
     assert sweep.last_line(str(log)) == "error: --n must be at least 1 (got 0)"
+
+
+def test_each_running_runs_progress_shows_in_the_sweeps_progress_lines(tmp_path, capsys):
+    """A sweep of runs that take hours said "ETA ?" until the first one ended. Each run now keeps its progress line
+    in its folder (also with --quiet, as the sweep runs it), and the sweep's progress lines show it per running
+    run."""
+    from cascade_plumbing.tracking import PROGRESS_NAME, Progress
+
+    progress_file = tmp_path / "progress.txt"
+    progress = Progress(2_000_000, quiet=True, file=str(progress_file))
+    progress.update(500_000, 100.0, 2)
+    assert capsys.readouterr().out == ""  # quiet: nothing printed, the file written all the same
+    assert progress_file.read_text().startswith("500,000/2,000,000 steps ( 25.0%) |    100 SPS | 2 net(s)")
+    assert "ETA about 4 h 10 min left" in progress_file.read_text()
+
+    (run,) = sweep.expand(sweep.Args(command=["cascade_sac.py --n 2"], envs=["Hopper-v4"]))
+    run_folder = tmp_path / "runs" / run.run_id / "Hopper-v4__cascade_sac_1__1__1700000000"
+    run_folder.mkdir(parents=True)
+    (run_folder / PROGRESS_NAME).write_text(progress_file.read_text())
+    tracker = sweep.Tracker(1, 1, every=30.0)
+    tracker.runs_dir = str(tmp_path / "runs")
+    tracker.started(run)
+    tracker.report(force=True)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("[sweep] 0 done, 1 running") and lines[1].startswith(
+        f"  {run.run_id}: 500,000/2,000,000 steps ( 25.0%)"), lines
+
+
+def test_a_quiet_run_keeps_its_progress_line_in_its_folder(tmp_path):
+    import cascade_ppo_continuous as cpc
+
+    run_dir = cpc.train(cpc.Args(env_id="Hopper-v4", n=1, k=512, num_steps=256, num_minibatches=4, update_epochs=1,
+                                 eval_every=0, quiet=True, track_dir=str(tmp_path)))["run_dir"]
+    line = open(os.path.join(run_dir, "progress.txt")).read()
+    assert "/512 steps" in line and "SPS" in line and "ETA" in line, line
