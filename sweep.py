@@ -734,8 +734,9 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
             with contextlib.redirect_stderr(quiet), contextlib.redirect_stdout(io.StringIO()):
                 script_args = tyro.cli(module.Args, args=argv)
         except SystemExit:
-            reason = tyro_reason(quiet.getvalue()) or quiet.getvalue().strip().splitlines()[-1:] or ["refused"]
-            fail(f"'{template}': {run.script} does not accept it: {reason if isinstance(reason, str) else reason[0]}")
+            said = quiet.getvalue().strip().splitlines()
+            reason = tyro_reason(quiet.getvalue()) or (said[-1] if said else "refused")
+            fail(f"'{template}': {run.script} does not accept it: {reason}")
         try:
             refuse_idle_flags(script_args, explicit_fields(module.Args, argv))
             with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
@@ -762,11 +763,11 @@ def sweep() -> None:
     check_envs(runs)
     sweep_dir = args.sweep_dir or os.path.join("sweeps", "_".join(args.preset) or "custom")
     sweep_dir = os.path.abspath(sweep_dir)
-    blocking = sweep_dir
-    while not os.path.isdir(blocking) and blocking != os.path.dirname(blocking):
-        if os.path.exists(blocking):
-            fail(f"--sweep-dir {args.sweep_dir}: {blocking} is a file, not a folder; pass a folder for the sweep")
-        blocking = os.path.dirname(blocking)
+    existing = sweep_dir  # its nearest existing ancestor must be a folder
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        fail(f"--sweep-dir {args.sweep_dir}: {existing} is a file, not a folder; pass a folder for the sweep")
     if args.backend == "local" and shutil.which(args.python) is None:  # (on Ray it must exist on the nodes)
         fail(f"--python {args.python} is not an executable (a path, or a name on PATH); pass the interpreter the runs "
              "use (default: this one)")

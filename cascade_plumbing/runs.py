@@ -209,17 +209,22 @@ def remove_unresumable_run(run_dir: str) -> bool:
     return True
 
 
-def no_space(folder: str, run_dir: str | None) -> None:
-    """Stop on a full disk in one line with advice that works: after a checkpoint, --resume; before the first one
-    there is nothing to resume, so the run's half-made folder is removed and the line says to start again."""
+def stop_short_of(lead: str, detail: str, run_dir: str | None, to_resume: str, to_restart: str) -> None:
+    """Stop a run that lacks a resource (disk, memory) in one line with advice that works: after a checkpoint,
+    `to_resume` and --resume; before the first one there is nothing to resume, so the run's half-made folder is
+    removed and the line says `to_restart`. `lead` says what ran out, `detail` (if any) the error itself."""
     script = os.path.basename(sys.argv[0])
     checkpoint = None if run_dir is None else os.path.join(run_dir, CHECKPOINT_NAME)
     if checkpoint is not None and os.path.exists(checkpoint):
-        fail(f"no space left on {folder}; the last checkpoint {checkpoint} is intact; free some space and continue "
-             f"with: python {script} --resume {run_dir}")
+        fail(f"{lead}{detail}; the last checkpoint {checkpoint} is intact; {to_resume} and continue with: "
+             f"python {script} --resume {run_dir}")
     removed = f" (its folder {run_dir} is removed)" if run_dir is not None and remove_unresumable_run(run_dir) else ""
-    fail(f"no space left on {folder} before the run's first checkpoint, so there is nothing to resume{removed}; free "
-         "some space and start the run again")
+    fail(f"{lead} before the run's first checkpoint{detail}, so there is nothing to resume{removed}; {to_restart}")
+
+
+def no_space(folder: str, run_dir: str | None) -> None:
+    """Stop on a full disk in one line (stop_short_of)."""
+    stop_short_of(f"no space left on {folder}", "", run_dir, "free some space", "free some space and start the run again")
 
 
 def out_of_memory(exc: BaseException) -> bool:
@@ -228,21 +233,14 @@ def out_of_memory(exc: BaseException) -> bool:
 
 
 def no_memory(exc: BaseException, run_dir: str | None, args: Any) -> None:
-    """Stop on a failed allocation (nets or batches too large for this machine) in one line, like a full disk: the
-    intact checkpoint to continue from, or, before the first one, the half-made folder removed."""
-    script = os.path.basename(sys.argv[0])
+    """Stop on a failed allocation (nets or batches too large for this machine) in one line, like a full disk
+    (stop_short_of), naming the flags of this script that size the nets and batches."""
     what = str(exc).splitlines()[0].strip() if str(exc) else type(exc).__name__
     what = what.split("DefaultCPUAllocator: ")[-1].split(" Error code")[0].rstrip(". ")
     sizes = [name for name in ("hidden_size", "critic_hidden_size", "num_envs", "num_steps", "batch_size", "buffer_size")
              if hasattr(args, name)]
     advice = f"smaller nets or batches ({', '.join('--' + n.replace('_', '-') for n in sizes)}) or a machine with more"
-    checkpoint = None if run_dir is None else os.path.join(run_dir, CHECKPOINT_NAME)
-    if checkpoint is not None and os.path.exists(checkpoint):
-        fail(f"out of memory ({what}); the last checkpoint {checkpoint} is intact: free some memory and continue with: "
-             f"python {script} --resume {run_dir}")
-    removed = f" (its folder {run_dir} is removed)" if run_dir is not None and remove_unresumable_run(run_dir) else ""
-    fail(f"out of memory before the run's first checkpoint ({what}), so there is nothing to resume{removed}; "
-         f"start again with {advice}")
+    stop_short_of("out of memory", f" ({what})", run_dir, "free some memory", f"start again with {advice}")
 
 
 def disk_full(exc: BaseException) -> bool:
@@ -429,11 +427,11 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     for flag in ("evaluate", "resume"):  # an empty path (`--resume "$RUN"` with RUN unset) would start a new run
         if getattr(args, flag) is not None and not getattr(args, flag).strip():
             fail(f"--{flag} is empty; pass a run folder or a checkpoint file")
+    given = explicit_fields(args_type, sys.argv[1:])
     if args.evaluate:
-        evaluate_only(args, explicit_fields(args_type, sys.argv[1:]), evaluate_saved)
+        evaluate_only(args, given, evaluate_saved)
         return
     checkpoint = None
-    given = explicit_fields(args_type, sys.argv[1:])
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
         refuse_overwriting_later_work(checkpoint)
