@@ -27,6 +27,7 @@ from .evaluation import EvaluationEnvs, open_saved_model, save_video_of_one_epis
 from .fast import plain_fused_adam
 from .record import RunRecord
 from .replay import ReplayBuffer, ReplayFiles, available_memory, buffer_capacity, store_transition
+from .runs import CHECKPOINT_ON_STOP, STOP_REQUESTED, stop_after_checkpoint
 from .tracking import log_new_videos
 
 
@@ -242,6 +243,12 @@ class OffPolicyRun(RunRecord):
         if self.args.track and "final_info" in infos:  # a video ends with its episode
             log_new_videos(self.video_folder, self.videos_sent, global_step)
         store_transition(buffer, obs, actions, self.next_obs, rewards, terminations, infos)
+        if not CHECKPOINT_ON_STOP:  # a step not yet in a checkpoint: a stop from now on writes one first
+            CHECKPOINT_ON_STOP.append(True)
+
+    def checkpoint_due(self, global_step: int) -> bool:
+        """Every --checkpoint-every steps, and at the step after a stop (which then ends the run)."""
+        return bool(STOP_REQUESTED) or super().checkpoint_due(global_step)
 
     # --- logging ---
     def iteration_start(self, iteration: int, size: int, n_params: int, nets: str, global_step: int) -> None:
@@ -306,11 +313,14 @@ class OffPolicyRun(RunRecord):
         end = steps_done == self.args.k
         self.save(payload, global_step, iteration_end=iteration if end else None)
         self.replay.prune(replay)
+        if not (end and iteration == self.args.n):  # (the final checkpoint: the run finishes, a stop changes nothing)
+            stop_after_checkpoint(global_step)
         if end:
             self.progress.message(f"iteration {iteration} done: global_step={global_step}, "
                                   f"SPS={int(self.sps(global_step))}")
 
     def close(self, global_step: int) -> None:
+        CHECKPOINT_ON_STOP.clear()
         if self.evaluator is not None:
             self.evaluator.close()
         self.envs.close()

@@ -170,11 +170,28 @@ def stop_signal(signum, frame) -> None:
                         "steps first\n".encode())
             FINISHING[0] = True
         return
+    if CHECKPOINT_ON_STOP and not STOP_REQUESTED:  # the run writes a checkpoint at its next step, then stops
+        STOP_REQUESTED.append(signum)  # (a second stop before that ends it at once, at its last checkpoint)
+        return
     STOPPED_BY.append(signum)
     raise KeyboardInterrupt
 
 
+def stop_after_checkpoint(global_step: int) -> None:
+    """Called after each checkpoint of a run that checkpoints on a stop: the stop it was written for ends the run."""
+    if STOP_REQUESTED and not FINISHING:
+        SAVED_AT_STOP[:] = [global_step]
+        STOPPED_BY.append(STOP_REQUESTED.pop())
+        raise KeyboardInterrupt
+
+
 STOPPED_BY: list[int] = []
+# A run whose checkpoints are costly to lose (SAC, DDPG: tens of thousands of steps between them) sets
+# CHECKPOINT_ON_STOP once it has taken a step; a stop then only asks (STOP_REQUESTED) for a checkpoint at the next
+# step, after which the run stops (SAVED_AT_STOP: the step of that checkpoint).
+CHECKPOINT_ON_STOP: list[bool] = []
+STOP_REQUESTED: list[int] = []
+SAVED_AT_STOP: list[int] = []
 FINAL: list[Callable[[str, dict], bool]] = []  # run_main's test of whether a checkpoint is the end of the run
 FINISHING: list[bool] = []  # [whether a stop was ignored] once the final checkpoint is being written
 
@@ -287,7 +304,10 @@ def stopped(checkpoint: dict | None) -> None:
     signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
     name = signal.Signals(signum).name
     script = os.path.basename(sys.argv[0])
-    if run_dir is not None and os.path.exists(os.path.join(run_dir, CHECKPOINT_NAME)):
+    if run_dir is not None and SAVED_AT_STOP and os.path.exists(os.path.join(run_dir, CHECKPOINT_NAME)):
+        where = (f"a checkpoint was written at the stop (global_step={SAVED_AT_STOP[-1]}), "
+                 f"{os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}")
+    elif run_dir is not None and os.path.exists(os.path.join(run_dir, CHECKPOINT_NAME)):
         where = f"the last checkpoint is {os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}"
     else:
         where = "no checkpoint was written yet, so there is nothing to resume"
@@ -455,11 +475,14 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     if not getattr(sys.excepthook, "quiet_resource_sharer", False):
         sys.excepthook = quiet_resource_sharer(sys.excepthook)
     RUN_DIR.clear()
+    SAVED_AT_STOP.clear()
     try:
         train(args, checkpoint)
     except BaseException as exc:
         FINAL.clear()  # this run's test; a later train() in the same process (a notebook, the tests) has its own
         FINISHING.clear()
+        CHECKPOINT_ON_STOP.clear()
+        STOP_REQUESTED.clear()
         finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
         if isinstance(exc, KeyboardInterrupt):
             end_env_workers()
@@ -478,3 +501,5 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     FINAL.clear()
     FINISHING.clear()
+    CHECKPOINT_ON_STOP.clear()
+    STOP_REQUESTED.clear()

@@ -15,7 +15,7 @@ import torch
 
 import cascade_ddpg as cd
 import cascade_sac as cs
-from cascade_plumbing import offpolicy, record
+from cascade_plumbing import offpolicy, record, runs
 from cascade_plumbing.replay import ReplayBuffer, ReplayFiles
 from helpers import ROOT, cli_in_process, only_run_dir, read_scalars
 
@@ -110,6 +110,79 @@ def test_a_run_killed_at_any_step_resumes_bit_identical(algo, keep_buffer, kill_
     saved = mod.load_checkpoint(run_dir)["replay"]
     segments = sorted(int(f[5:-4]) for f in os.listdir(os.path.join(run_dir, "replay")))
     assert segments and segments[0] == saved["first"] // 16, (segments, saved)
+
+
+@pytest.fixture
+def stop_state():
+    """The stop bookkeeping of cascade_plumbing.runs, emptied before and after (a test's stop must not reach the
+    next run of the same process)."""
+    state = (runs.CHECKPOINT_ON_STOP, runs.STOP_REQUESTED, runs.SAVED_AT_STOP, runs.STOPPED_BY)
+    for each in state:
+        each.clear()
+    yield
+    for each in state:
+        each.clear()
+
+
+def stop_at(monkeypatch, step, signum=signal.SIGTERM):
+    """A stop signal (SIGTERM, Ctrl-C) arriving right after env step `step` of the next run, through the scripts'
+    own handler: in-process, as run_main installs it."""
+    original = offpolicy.OffPolicyRun.step
+
+    def step_then_signal(self, actions, buffer, global_step):
+        original(self, actions, buffer, global_step)
+        if global_step == step:
+            runs.stop_signal(signum, None)
+
+    monkeypatch.setattr(offpolicy.OffPolicyRun, "step", step_then_signal)
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+# in the warm-up (99), between periodic checkpoints (163), at the last step of iteration 1 (its end's checkpoint:
+# 300), in iteration 2 (563)
+@pytest.mark.parametrize("stop_step", [99, 163, 300, 563])
+def test_a_stop_writes_a_checkpoint_at_the_next_step_and_resumes_bit_identical(algo, stop_step, uninterrupted,
+                                                                              tmp_path, monkeypatch, stop_state):
+    """SIGTERM or Ctrl-C loses nothing: the run writes a checkpoint at the step after the signal (not only at its
+    last periodic one, up to --checkpoint-every steps back), then stops; resumed, it ends as if never stopped."""
+    mod = SCRIPTS[algo]
+    expected, expected_scalars = uninterrupted(algo, False)
+    with monkeypatch.context() as patch:
+        stop_at(patch, stop_step)
+        with pytest.raises(KeyboardInterrupt):
+            mod.train(mod.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
+    record.OPEN_WRITERS.clear()
+    run_dir = only_run_dir(tmp_path)
+    assert mod.load_checkpoint(run_dir)["global_step"] == stop_step == runs.SAVED_AT_STOP[-1]
+    assert runs.STOPPED_BY == [signal.SIGTERM] and not runs.STOP_REQUESTED
+    runs.CHECKPOINT_ON_STOP.clear()  # (run_main's cleanup after a stop)
+    resumed = resume(mod, run_dir)
+    assert_identical(expected, final_state(resumed, algo))
+    scalars = read_scalars(run_dir)
+    for tag in ("eval/episodic_return", "losses/qf1_loss", "members/return/net_2"):
+        assert scalars[tag] == expected_scalars[tag], tag
+
+
+def test_a_stop_at_the_last_step_lets_the_run_finish(uninterrupted, tmp_path, monkeypatch, stop_state):
+    """A stop at the run's last step: its checkpoint is the final one, the run ends complete (no stop)."""
+    expected, _ = uninterrupted("sac", False)
+    with monkeypatch.context() as patch:
+        stop_at(patch, 600)
+        result = cs.train(cs.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
+    assert_identical(expected, final_state(result, "sac"))
+    assert not runs.STOPPED_BY and not runs.CHECKPOINT_ON_STOP
+
+
+def test_a_stop_before_the_first_step_or_a_second_stop_ends_the_run_at_once(stop_state):
+    """Before its first step a run has nothing to keep, and a second stop means now: both stop at once."""
+    with pytest.raises(KeyboardInterrupt):  # no step taken yet
+        runs.stop_signal(signal.SIGINT, None)
+    runs.STOPPED_BY.clear()
+    runs.CHECKPOINT_ON_STOP.append(True)
+    assert runs.stop_signal(signal.SIGINT, None) is None and runs.STOP_REQUESTED == [signal.SIGINT]
+    with pytest.raises(KeyboardInterrupt):
+        runs.stop_signal(signal.SIGTERM, None)
+    assert runs.STOPPED_BY == [signal.SIGTERM]
 
 
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
@@ -302,6 +375,42 @@ def test_sigkill_then_resume_on_the_command_line(algo, tmp_path):
     assert again.returncode == 0, again.stderr[-2000:]
     mod = SCRIPTS[algo]
     a, b = mod.load_checkpoint(only_run_dir(tmp_path / "a")), mod.load_checkpoint(run_dir)
+    for name in NETS[algo]:
+        for key, value in a[name].items():
+            torch.testing.assert_close(b[name][key], value, rtol=0, atol=0, msg=f"{name}.{key}")
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+def test_sigterm_then_resume_on_the_command_line(algo, tmp_path):
+    """As a cluster's preemption or a sweep's stop meets a run: SIGTERM in the middle of an iteration, with no
+    periodic checkpoint since its start (--checkpoint-every 0). The run writes one at the stop, says so in one line
+    (exit 143), and `--resume` ends with the same nets as a run never stopped."""
+    script = f"cascade_{algo}.py"
+    flags = ["--env-id", "Pendulum-v1", "--n", "2", "--k", "600", "--learning-starts", "100", "--batch-size", "32",
+             "--eval-every", "0", "--checkpoint-every", "0", "--quiet"]
+    whole = subprocess.run([sys.executable, os.path.join(ROOT, script), *flags, "--track-dir", str(tmp_path / "a")],
+                           capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert whole.returncode == 0, whole.stderr[-2000:]
+    proc = subprocess.Popen([sys.executable, os.path.join(ROOT, script), *flags, "--track-dir", str(tmp_path / "b")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    deadline = time.time() + 600
+    while not list((tmp_path / "b").glob("*/iteration_1.pt")):  # the end of iteration 1 (step 600)
+        if proc.poll() is not None or time.time() > deadline:
+            proc.kill()
+            pytest.fail(f"the run ended before it was stopped: {proc.stderr.read()[-2000:]}")
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    err = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 143, err[-2000:]
+    lines = [line.strip("\r") for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("stopped by SIGTERM: a checkpoint was written at the stop"), err
+    run_dir = only_run_dir(tmp_path / "b")
+    step = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)["global_step"]
+    assert 600 < step < 1200 and f"global_step={step}" in lines[0] and f"--resume {run_dir}" in lines[0]
+    again = subprocess.run([sys.executable, os.path.join(ROOT, script), "--resume", run_dir],
+                           capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert again.returncode == 0, again.stderr[-2000:]
+    a, b = SCRIPTS[algo].load_checkpoint(only_run_dir(tmp_path / "a")), SCRIPTS[algo].load_checkpoint(run_dir)
     for name in NETS[algo]:
         for key, value in a[name].items():
             torch.testing.assert_close(b[name][key], value, rtol=0, atol=0, msg=f"{name}.{key}")
