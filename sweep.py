@@ -44,7 +44,7 @@ from typing import Literal
 
 import tyro
 
-from cascade_plumbing.errors import fail
+from cascade_plumbing.errors import fail, parse_command_line, parse_error_line
 from cascade_plumbing.processes import run_dies_with_parent
 from cascade_plumbing.tracking import PROGRESS_NAME, check_wandb, duration
 
@@ -684,26 +684,6 @@ def check_envs(runs: list[Run]) -> None:
                  "the discrete scripts on it")
 
 
-def tyro_reason(text: str) -> str | None:
-    """The line that says what is wrong in tyro's parse error at the end of `text`, or None if it ends otherwise.
-    Drawn as a box (a terminal) or as plain text with dashed rules, the error is a title, a rule, the reason, then
-    further sections, and ends with "For full helptext, ..." and the program's name."""
-    raw = [line.strip() for line in text.splitlines() if line.strip()]
-    lines = [line.strip("\u2502\u256d\u256e\u2570\u256f").strip() for line in raw]
-    ends = [i for i, line in enumerate(lines) if line.startswith("For full helptext")]
-    if not ends or ends[-1] < len(lines) - 4:
-        return None
-
-    def rule(line: str) -> bool:
-        return len(line) > 3 and set(line) <= {"-", "\u2500"}
-
-    window = range(max(ends[-1] - 40, 0), ends[-1])
-    tops = [i for i in window if raw[i].startswith("\u256d")]  # a box: its title is in the top border
-    starts = tops[-1:] or [i for i in window if rule(lines[i])][:1]  # plain: the title, then a rule
-    reasons = [line for line in lines[starts[0] + 1 : ends[-1]] if line and not rule(line)] if starts else []
-    return reasons[0] if reasons else None
-
-
 def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
     """Each new run's command line parsed by its script's Args and checked by the script's own input checks (its
     `validate`, or `resolve` in the discrete scripts), once per template and env, before any run starts: a flag
@@ -735,7 +715,7 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
                 script_args = tyro.cli(module.Args, args=argv)
         except SystemExit:
             said = quiet.getvalue().strip().splitlines()
-            reason = tyro_reason(quiet.getvalue()) or (said[-1] if said else "refused")
+            reason = parse_error_line(quiet.getvalue()) or (said[-1] if said else "refused")
             fail(f"'{template}': {run.script} does not accept it: {reason}")
         try:
             refuse_idle_flags(script_args, explicit_fields(module.Args, argv))
@@ -746,7 +726,7 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
 
 
 def sweep() -> None:
-    args = tyro.cli(Args, description=__doc__.split("\n\n")[0])
+    args = parse_command_line(lambda: tyro.cli(Args, description=__doc__.split("\n\n")[0]))
     if args.workers < 1:
         fail(f"--workers must be at least 1 (got {args.workers})")
     if not args.status_every > 0:
@@ -833,7 +813,7 @@ def last_line(log: str) -> str:
             lines = [line.strip() for line in f.read().decode(errors="replace").splitlines() if line.strip()]
     except OSError:
         return "(no log)"
-    line = tyro_reason("\n".join(lines)) or (lines[-1] if lines else "(empty log)")  # a parse error: why, not its box
+    line = parse_error_line("\n".join(lines)) or (lines[-1] if lines else "(empty log)")  # a parse error: why, not its box
     return line if len(line) <= 300 else line[:297] + "..."
 
 

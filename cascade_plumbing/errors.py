@@ -2,13 +2,83 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
-from typing import Any
+import sys
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 
 def fail(message: str) -> None:
     """Stop with a one-line error and a non-zero exit code."""
     raise SystemExit(f"error: {message}")
+
+
+def parse_command_line(parse: Callable[[], T]) -> T:
+    """`parse()` (a `tyro.cli` call), with tyro's parse errors (a box of a dozen lines) as one line: what is wrong,
+    the flag tyro suggests, and where the help is (`error: ...; see <script> --help`, exit 2). --help is as tyro
+    prints it; anything else tyro says goes out unchanged."""
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(said):
+            parsed = parse()
+    except SystemExit as exc:
+        line = parse_error_line(said.getvalue()) if exc.code else None
+        if line is None:
+            sys.stderr.write(said.getvalue())
+            raise
+        print(f"error: {line.rstrip('.')}; see {sys.argv[0]} --help", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    sys.stderr.write(said.getvalue())
+    return parsed
+
+
+def parse_error_line(text: str) -> str | None:
+    """The parse error tyro printed at the end of `text`, in one line (None if `text` ends otherwise).
+
+    tyro draws it as a box (or as plain text with dashed rules): a title, then sections split by rules, the last one
+    "For full helptext, ...". A section is a sentence (wrapped over lines: joined), or a heading that ends in ":"
+    over indented entries (flags and their help: the flags are kept). "Perhaps you meant:" becomes "(did you mean
+    --x?)" and "Argument helptext:" (the help of the flag named before) is left out."""
+    raw = [line for line in text.splitlines() if line.strip()]
+    lines = [line.rstrip().rstrip("\u2502\u256e\u256f").rstrip() for line in raw]  # (a box's right border)
+    lines = [line.lstrip()[1:] if line.lstrip()[:1] in ("\u2502", "\u256d", "\u2570") else line for line in lines]
+    ends = [i for i, line in enumerate(lines) if line.strip().startswith("For full helptext")]
+    if not ends or ends[-1] < len(lines) - 4:
+        return None
+
+    def rule(line: str) -> bool:
+        return len(line.strip()) > 3 and set(line.strip()) <= {"-", "\u2500"}
+
+    window = range(max(ends[-1] - 60, 0), ends[-1])
+    tops = [i for i in window if raw[i].strip().startswith("\u256d")]  # a box: its title is in the top border
+    starts = tops[-1:] or [i for i in window if rule(lines[i])][:1]  # plain: the title, then a rule
+    if not starts:
+        return None
+    sections: list[list[str]] = [[]]
+    for line in lines[starts[0] + 1 : ends[-1]]:
+        if rule(line):
+            sections.append([])
+        elif line.strip():
+            sections[-1].append(line[1:] if line.startswith(" ") else line)  # (the box's inner margin)
+    said: list[str] = []
+    for heading, *entries in filter(None, sections):
+        heading = heading.strip()
+        if heading == "Argument helptext:":
+            continue
+        if heading.endswith(":") and entries:  # a heading over indented entries: the least indented are the flags
+            indent = min(len(entry) - len(entry.lstrip()) for entry in entries)
+            flags = [entry.split()[0] for entry in entries if len(entry) - len(entry.lstrip()) == indent]
+            if heading == "Perhaps you meant:" and said:
+                said[-1] += f" (did you mean {' or '.join(dict.fromkeys(flags))}?)"
+                continue
+            said.append(f"{heading} {', '.join(flags)}")
+        else:
+            said.append(" ".join([heading, *(entry.strip() for entry in entries)]))
+    return "; ".join(said) or None
 
 
 # The ranges of the scripts' real-valued settings (each applies where a script has the setting): a value outside

@@ -27,7 +27,7 @@ from threadpoolctl import ThreadpoolController
 
 from .checkpoints import CHECKPOINT_NAME, refuse_overwriting_later_work, repair_iteration_files
 from .envs import end_env_workers
-from .errors import check_ranges, fail
+from .errors import check_ranges, fail, parse_command_line
 from .tracking import check_wandb, finish_wandb
 
 
@@ -443,7 +443,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     A stop (Ctrl-C, SIGTERM) ends with one line saying where the last checkpoint is (exit 130 / 143); a run
     that has finished its work is not stopped any more (its checkpoint is final), and resuming a finished run
     does nothing."""
-    args = tyro.cli(args_type, description=description)
+    args = parse_command_line(lambda: tyro.cli(args_type, description=description))
     for flag in ("evaluate", "resume"):  # an empty path (`--resume "$RUN"` with RUN unset) would start a new run
         if getattr(args, flag) is not None and not getattr(args, flag).strip():
             fail(f"--{flag} is empty; pass a run folder or a checkpoint file")

@@ -44,6 +44,7 @@ import tyro
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # for `python plots/<script>.py`
 import cascade_ppo_continuous as cpc  # noqa: E402
+from cascade_plumbing.errors import parse_command_line  # noqa: E402
 from plots import common  # noqa: E402
 
 
@@ -412,6 +413,6 @@ def main(args: FallbackCourse | Plasticity | Table2) -> object:
 
 
 if __name__ == "__main__":
-    parsed = tyro.extras.subcommand_cli_from_dict(COMMANDS, description=__doc__.split("\n\n")[0])
+    parsed = parse_command_line(lambda: tyro.extras.subcommand_cli_from_dict(COMMANDS, description=__doc__.split("\n\n")[0]))
     common.check_cli(parsed)
     main(parsed)

@@ -209,7 +209,9 @@ def parse_cli(args_type: type, description: str) -> Any:
     """A tool's command line, parsed (tyro) and checked before anything is read or written (`check_cli`)."""
     import tyro
 
-    args = tyro.cli(args_type, description=description)
+    from cascade_plumbing.errors import parse_command_line
+
+    args = parse_command_line(lambda: tyro.cli(args_type, description=description))
     check_cli(args)
     return args
 

@@ -285,3 +285,41 @@ def test_a_hand_made_file_with_our_format_is_one_line(script, tmp_path):
         line = error_line_in_process(f"{script}.py", flag, str(path))
         assert line == (f"error: {path} is an incomplete {script} checkpoint (no args, global_step): not one that "
                         f"{script}.py wrote; pass a run folder or a checkpoint file it wrote"), line
+
+
+@pytest.mark.parametrize("script,flags,message", [
+    ("cascade_sac.py", ["--nn", "3"], "error: Unrecognized options: --nn, 3 (did you mean --n?); see "),
+    ("cascade_ppo_continuous.py", ["--learning-rate", "x"],
+     "error: Error parsing --learning-rate: could not convert string to float: 'x'; see "),
+    ("ppo_baseline_discrete.py", ["--env-id"], "error: Missing value for argument '--env-id'. Expected 1 values; see"),
+    ("cascade_ddpg.py", ["--hidden_siz", "4"], "(did you mean --hidden-size?)"),
+    ("sweep.py", ["--presett", "sac"], "error: Unrecognized options: --presett, sac (did you mean --preset?)"),
+    ("plots/learning_curves.py", ["--nope"], "error: Unrecognized options: --nope; see "),
+    ("plots/analyze.py", ["fallback-course"], "analyze.py fallback-course: --checkpoint; see "),
+])
+def test_a_flag_the_command_line_cannot_parse_is_one_line(script, flags, message):
+    """tyro's parse errors (an unknown or misspelt flag, a value of the wrong type, a missing value or option) were
+    a box of up to a dozen lines with the flag's whole help; now one line: what is wrong, the flag tyro suggests,
+    and the --help to read (exit 2, as tyro's)."""
+    proc = run_script(script, *flags, timeout=120)
+    line = error_line(proc)
+    assert proc.returncode == 2 and message in line and line.endswith(f"{script} --help"), line
+
+
+@pytest.mark.parametrize("box,expected", [
+    # as a narrow terminal wraps it: the sentence joined again; the flag's help left out
+    ("\u256d\u2500 Value error \u2500\u2500\u256e\n\u2502 Error parsing --k: invalid literal for \u2502\n"
+     "\u2502 int() with base 10: 'abc' \u2502\n\u2502 \u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n"
+     "\u2502 Argument helptext: \u2502\n\u2502     --k INT \u2502\n\u2502     steps per net \u2502\n"
+     "\u2502 \u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n\u2502 For full helptext, see x.py --help \u2502\n"
+     "\u2570\u2500\u2500\u2500\u2500\u256f\n", "Error parsing --k: invalid literal for int() with base 10: 'abc'"),
+    # plain text with dashed rules; two suggestions, each with help lines that start with a flag
+    ("Unrecognized options\n------\nUnrecognized options: --lr\n------\nPerhaps you meant:\n    --q-lr FLOAT\n"
+     "        --q-lr is the critics' rate\n    --policy-lr FLOAT\n        the actor's\n------\n"
+     "For full helptext, run x.py --help\n", "Unrecognized options: --lr (did you mean --q-lr or --policy-lr?)"),
+    ("a run's last line\n", None),
+])
+def test_parse_error_line_reads_tyros_box_and_plain_forms(box, expected):
+    from cascade_plumbing.errors import parse_error_line
+
+    assert parse_error_line(box) == expected
