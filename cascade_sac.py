@@ -137,7 +137,7 @@ class Args:
 
     # Checkpoints, resuming, evaluating a saved model
     checkpoint_every: int = 50_000
-    """also checkpoint every this many env steps, besides the end of every iteration and the step after a stop (Ctrl-C, SIGTERM) (0: not in between); a checkpoint holds the replay buffer (the rows added since the previous one go to the run folder's replay/)"""
+    """also checkpoint every this many env steps, besides the end of every iteration and the step after a stop (Ctrl-C, SIGTERM) (0: only those); a checkpoint holds the replay buffer (the rows added since the previous one go to the run folder's replay/)"""
     resume: str | None = None
     """continue a killed run exactly from its latest checkpoint (`runs/<run_name>`, or its checkpoint.pt), replay buffer included"""
     evaluate: str | None = None

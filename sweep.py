@@ -21,6 +21,7 @@ the running runs (each resumes on the next call) and ends the sweep with one lin
 from __future__ import annotations
 
 import ast
+import contextlib
 import fcntl
 import functools
 import glob
@@ -462,7 +463,7 @@ def execute(command: list[str], log_path: str, marker_path: str, cwd: str, ident
 
 def launch(command: list[str], log, cwd: str) -> subprocess.Popen:
     """The run in a session of its own (a stop of the sweep reaches it from the sweep only), ending with the sweep:
-    a sweep killed even by SIGKILL sends it SIGTERM (Linux), and it stops at its checkpoint. A local run holds the
+    a sweep killed even by SIGKILL sends it SIGTERM (Linux), and it stops as when stopped (`stop_running`). A local run holds the
     sweep folder's lock too (`lock_sweep_dir`), so no other sweep starts there before it has ended."""
     log.write(f"$ {shlex.join(command)}\n")
     log.flush()
@@ -583,8 +584,9 @@ def run_local(todo: list[tuple[Run, list[str], str, str]], workers: int, tracker
 
 
 def stop_running() -> None:
-    """SIGTERM to each running run (its main process, which ends its own worker processes): a run stops at its
-    last checkpoint, or finishes normally when its final checkpoint is already being written."""
+    """SIGTERM to each running run (its main process, which ends its own worker processes): a PPO run stops at its
+    last checkpoint, a SAC or DDPG run writes one at its next step first; a run whose final checkpoint is already
+    being written finishes normally."""
     with RUNNING_LOCK:
         for proc in list(RUNNING):
             try:
@@ -645,8 +647,12 @@ def run_ray(todo: list[tuple[Run, list[str], str, str]], args: Args, tracker: Tr
 
 
 def interrupt(signum, frame):
-    """Ctrl-C or SIGTERM: the sweep stops (once; a repeated signal while it stops its runs changes nothing)."""
+    """Ctrl-C or SIGTERM: the sweep stops. A repeated one while it stops its runs passes on to them: a SAC or DDPG
+    run, which writes a checkpoint at its next step when stopped, then stops at once."""
     if STOP:
+        for proc in list(RUNNING):  # (not under RUNNING_LOCK: the interrupted code may hold it)
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGTERM)
         return
     STOP.append(signum)
     raise KeyboardInterrupt
@@ -689,7 +695,6 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
     `validate`, or `resolve` in the discrete scripts), once per template and env, before any run starts: a flag
     the script does not have, a value it refuses or a budget too small for it is one line now, instead of one
     failed run per seed and template at the end of the sweep."""
-    import contextlib
     import importlib
     import io
 

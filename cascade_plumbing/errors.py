@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import re
 import sys
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -20,20 +21,35 @@ def fail(message: str) -> None:
 def parse_command_line(parse: Callable[[], T]) -> T:
     """`parse()` (a `tyro.cli` call), with tyro's parse errors (a box of a dozen lines) as one line: what is wrong,
     the flag tyro suggests, and where the help is (`error: ...; see <script> --help`, exit 2). --help is as tyro
-    prints it; anything else tyro says goes out unchanged."""
+    prints it; anything else tyro says (a warning) goes out unchanged."""
     said = io.StringIO()
     try:
         with contextlib.redirect_stderr(said):
-            parsed = parse()
+            return parse()
     except SystemExit as exc:
         line = parse_error_line(said.getvalue()) if exc.code else None
         if line is None:
-            sys.stderr.write(said.getvalue())
             raise
-        print(f"error: {line.rstrip('.')}; see {sys.argv[0]} --help", file=sys.stderr, flush=True)
+        text = ANSI.sub("", said.getvalue())
+        said = io.StringIO(text[: text.rfind("\n", 0, error_start(text)) + 1])  # what came before the error
+        print(f"error: {line.rstrip('.')}; see {sys.argv[0]} --help", file=said, flush=True)
         raise SystemExit(2) from None
-    sys.stderr.write(said.getvalue())
-    return parsed
+    finally:
+        sys.stderr.write(said.getvalue())
+        sys.stderr.flush()
+
+
+ANSI = re.compile(r"\x1b\[[0-9;]*m")  # tyro colours its errors on a terminal
+BOX = ("\u2502", "\u256d", "\u2570")  # a box's left border: side, top, bottom
+
+
+def error_start(text: str) -> int:
+    """Where tyro's error box (its top border; in plain form, its title before the first rule) starts in `text`."""
+    top = text.rfind("\u256d")
+    if top >= 0:
+        return top
+    rule = re.search(r"^[ \t]*-{4,}[ \t]*$", text, flags=re.M)
+    return text.rfind("\n", 0, text.rfind("\n", 0, rule.start()) if rule else 0) + 1 if rule else len(text)
 
 
 def parse_error_line(text: str) -> str | None:
@@ -41,11 +57,12 @@ def parse_error_line(text: str) -> str | None:
 
     tyro draws it as a box (or as plain text with dashed rules): a title, then sections split by rules, the last one
     "For full helptext, ...". A section is a sentence (wrapped over lines: joined), or a heading that ends in ":"
-    over indented entries (flags and their help: the flags are kept). "Perhaps you meant:" becomes "(did you mean
-    --x?)" and "Argument helptext:" (the help of the flag named before) is left out."""
-    raw = [line for line in text.splitlines() if line.strip()]
+    over indented entries: the flags (or values) first, each with its help indented further, then maybe a note
+    (less indented: a sentence). "Perhaps you meant:" becomes "(did you mean --x?)", naming the subcommand a flag
+    belongs to; "Argument helptext:" (the help of the flag named before) is left out."""
+    raw = [line for line in ANSI.sub("", text).splitlines() if line.strip()]
     lines = [line.rstrip().rstrip("\u2502\u256e\u256f").rstrip() for line in raw]  # (a box's right border)
-    lines = [line.lstrip()[1:] if line.lstrip()[:1] in ("\u2502", "\u256d", "\u2570") else line for line in lines]
+    lines = [line.lstrip()[1:] if line.lstrip()[:1] in BOX else line for line in lines]
     ends = [i for i, line in enumerate(lines) if line.strip().startswith("For full helptext")]
     if not ends or ends[-1] < len(lines) - 4:
         return None
@@ -53,7 +70,10 @@ def parse_error_line(text: str) -> str | None:
     def rule(line: str) -> bool:
         return len(line.strip()) > 3 and set(line.strip()) <= {"-", "\u2500"}
 
-    window = range(max(ends[-1] - 60, 0), ends[-1])
+    def indent(line: str) -> int:
+        return len(line) - len(line.lstrip())
+
+    window = range(max(ends[-1] - 80, 0), ends[-1])
     tops = [i for i in window if raw[i].strip().startswith("\u256d")]  # a box: its title is in the top border
     starts = tops[-1:] or [i for i in window if rule(lines[i])][:1]  # plain: the title, then a rule
     if not starts:
@@ -62,23 +82,33 @@ def parse_error_line(text: str) -> str | None:
     for line in lines[starts[0] + 1 : ends[-1]]:
         if rule(line):
             sections.append([])
-        elif line.strip():
+        else:
             sections[-1].append(line[1:] if line.startswith(" ") else line)  # (the box's inner margin)
-    said: list[str] = []
-    for heading, *entries in filter(None, sections):
-        heading = heading.strip()
+    said: list[list[str]] = []  # per section: what is wrong, then a note
+    for heading, *entries in (section for section in sections if section and section[0].strip()):
+        heading, entries = heading.strip(), [entry for entry in entries if entry.strip()]
         if heading == "Argument helptext:":
             continue
-        if heading.endswith(":") and entries:  # a heading over indented entries: the least indented are the flags
-            indent = min(len(entry) - len(entry.lstrip()) for entry in entries)
-            flags = [entry.split()[0] for entry in entries if len(entry) - len(entry.lstrip()) == indent]
-            if heading == "Perhaps you meant:" and said:
-                said[-1] += f" (did you mean {' or '.join(dict.fromkeys(flags))}?)"
-                continue
-            said.append(f"{heading} {', '.join(flags)}")
+        if not (heading.endswith(":") and entries and indent(entries[0]) > 0):
+            said.append([" ".join([heading, *(entry.strip() for entry in entries)])])
+            continue
+        # a heading over indented entries: the entries at the first one's indentation are the flags (or values),
+        # each followed by its help; what is less indented after them is a note
+        depth = indent(entries[0])
+        flags: list[str] = []
+        note: list[str] = []
+        for entry in entries:
+            if note or indent(entry) < depth:
+                note.append(entry.strip())
+            elif indent(entry) == depth:
+                flags.append(entry.split()[0].rstrip(","))  # (`--x, --no-x` of a boolean flag: --x)
+            elif entry.strip().startswith("in ") and entry.strip().endswith(" --help") and flags:
+                flags[-1] += f" of {entry.strip()[3:-7]}"  # a suggestion from another subcommand
+        if heading == "Perhaps you meant:" and said:
+            said[-1][0] += f" (did you mean {' or '.join(dict.fromkeys(flags))}?)"
         else:
-            said.append(" ".join([heading, *(entry.strip() for entry in entries)]))
-    return "; ".join(said) or None
+            said.append([f"{heading} {', '.join(flags)}", *note])
+    return "; ".join(" ".join(parts) for parts in said) or None
 
 
 # The ranges of the scripts' real-valued settings (each applies where a script has the setting): a value outside

@@ -10,6 +10,8 @@ script's."""
 from __future__ import annotations
 
 import math
+import signal
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -27,7 +29,7 @@ from .evaluation import EvaluationEnvs, open_saved_model, save_video_of_one_epis
 from .fast import plain_fused_adam
 from .record import RunRecord
 from .replay import ReplayBuffer, ReplayFiles, available_memory, buffer_capacity, store_transition
-from .runs import CHECKPOINT_ON_STOP, STOP_REQUESTED, stop_after_checkpoint
+from .runs import CHECKPOINT_ON_STOP, STOP_REQUESTED, forget_stops, stop_after_checkpoint
 from .tracking import log_new_videos
 
 
@@ -199,6 +201,7 @@ class OffPolicyRun(RunRecord):
         self.eval_calls = 0
         self.next_obs: np.ndarray | None = None
         self.replay: ReplayFiles | None = None  # the replay buffer's rows on disk (made with the buffer's first save)
+        forget_stops()  # (what a run before it in this process left: this one has taken no step yet)
 
     # --- the start of a run, or where a resumed one continues ---
     def start(self) -> tuple[int, int, int]:
@@ -313,14 +316,17 @@ class OffPolicyRun(RunRecord):
         end = steps_done == self.args.k
         self.save(payload, global_step, iteration_end=iteration if end else None)
         self.replay.prune(replay)
-        if not (end and iteration == self.args.n):  # (the final checkpoint: the run finishes, a stop changes nothing)
+        if not (end and iteration == self.args.n):
             stop_after_checkpoint(global_step)
+        elif STOP_REQUESTED:  # a stop after the last step (during the last evaluations): the run is complete now
+            print(f"\r{signal.Signals(STOP_REQUESTED[-1]).name} after the run's last step: it finished instead of "
+                  "stopping (its final evaluation and checkpoint are written)", file=sys.stderr, flush=True)
         if end:
             self.progress.message(f"iteration {iteration} done: global_step={global_step}, "
                                   f"SPS={int(self.sps(global_step))}")
 
     def close(self, global_step: int) -> None:
-        CHECKPOINT_ON_STOP.clear()
+        forget_stops()
         if self.evaluator is not None:
             self.evaluator.close()
         self.envs.close()

@@ -177,6 +177,13 @@ def stop_signal(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def forget_stops() -> None:
+    """No run of this process checkpoints on a stop, and none is asked for (at the start of a run or of --evaluate:
+    what an earlier run in the same process left, a notebook's or a test's, must not defer this one's stop)."""
+    CHECKPOINT_ON_STOP.clear()
+    STOP_REQUESTED.clear()
+
+
 def stop_after_checkpoint(global_step: int) -> None:
     """Called after each checkpoint of a run that checkpoints on a stop: the stop it was written for ends the run."""
     if STOP_REQUESTED and not FINISHING:
@@ -424,6 +431,7 @@ def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], An
              f"settings it was trained with; leave it out (with --evaluate only "
              f"{', '.join('--' + name.replace('_', '-') for name in applying)} apply)")
     check_seed(args.seed)
+    forget_stops()
     signal.signal(signal.SIGTERM, stop_signal)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, stop_signal)
@@ -465,6 +473,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
             print(f"{checkpoint['path']} is the end of the run (global_step={checkpoint['global_step']}); "
                   "nothing to resume")
             return
+    forget_stops()
     signal.signal(signal.SIGTERM, stop_signal)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where it is ignored (nohup, `cmd &`)
         signal.signal(signal.SIGINT, stop_signal)
@@ -481,8 +490,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     except BaseException as exc:
         FINAL.clear()  # this run's test; a later train() in the same process (a notebook, the tests) has its own
         FINISHING.clear()
-        CHECKPOINT_ON_STOP.clear()
-        STOP_REQUESTED.clear()
+        forget_stops()
         finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
         if isinstance(exc, KeyboardInterrupt):
             end_env_workers()
@@ -501,5 +509,4 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     FINAL.clear()
     FINISHING.clear()
-    CHECKPOINT_ON_STOP.clear()
-    STOP_REQUESTED.clear()
+    forget_stops()

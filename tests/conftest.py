@@ -1,6 +1,7 @@
 import os
 import sys
 
+import pytest
 import torch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -34,6 +35,18 @@ LONG_FIRST = (
     "test_tracking.py::test_capture_video_records_training_and_changes_nothing",
     "test_checkpoints.py::test_stopping_a_run_is_one_line",
 )
+
+
+@pytest.fixture(autouse=True)
+def no_stop_left_behind():
+    """The stop bookkeeping a test leaves (an in-process run killed or stopped mid-way keeps its request) must not
+    reach the next test's runs on the same worker."""
+    yield
+    from cascade_plumbing import runs
+
+    runs.forget_stops()
+    runs.STOPPED_BY.clear()
+    runs.SAVED_AT_STOP.clear()
 
 
 def pytest_configure(config):

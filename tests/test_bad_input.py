@@ -296,6 +296,9 @@ def test_a_hand_made_file_with_our_format_is_one_line(script, tmp_path):
     ("sweep.py", ["--presett", "sac"], "error: Unrecognized options: --presett, sac (did you mean --preset?)"),
     ("plots/learning_curves.py", ["--nope"], "error: Unrecognized options: --nope; see "),
     ("plots/analyze.py", ["fallback-course"], "analyze.py fallback-course: --checkpoint; see "),
+    # a flag of a subcommand given before it: the flag, tyro's note and the subcommand the suggestions belong to
+    ("plots/analyze.py", ["table2", "--observations-from", "after"], "error: Unrecognized or misplaced options: "
+     "--observations-from, after (did you mean --observations-from of "),
 ])
 def test_a_flag_the_command_line_cannot_parse_is_one_line(script, flags, message):
     """tyro's parse errors (an unknown or misspelt flag, a value of the wrong type, a missing value or option) were
@@ -317,9 +320,43 @@ def test_a_flag_the_command_line_cannot_parse_is_one_line(script, flags, message
     ("Unrecognized options\n------\nUnrecognized options: --lr\n------\nPerhaps you meant:\n    --q-lr FLOAT\n"
      "        --q-lr is the critics' rate\n    --policy-lr FLOAT\n        the actor's\n------\n"
      "For full helptext, run x.py --help\n", "Unrecognized options: --lr (did you mean --q-lr or --policy-lr?)"),
+    # coloured, as tyro writes it to a terminal; a boolean flag's two spellings
+    ("\x1b[31m\u256d\u2500 Unrecognized options \u2500\u256e\x1b[0m\n\u2502 \x1b[1mUnrecognized options: --eval-det"
+     "\x1b[0m \u2502\n\u2502 \u2500\u2500\u2500\u2500 \u2502\n\u2502 Perhaps you meant: \u2502\n"
+     "\u2502     --eval-deterministic, --no-eval-deterministic \u2502\n\u2502         greedy actions \u2502\n"
+     "\u2502 \u2500\u2500\u2500\u2500 \u2502\n\u2502 For full helptext, run x.py --help \u2502\n"
+     "\u2570\u2500\u2500\u2500\u256f\n", "Unrecognized options: --eval-det (did you mean --eval-deterministic?)"),
     ("a run's last line\n", None),
 ])
 def test_parse_error_line_reads_tyros_box_and_plain_forms(box, expected):
     from cascade_plumbing.errors import parse_error_line
 
     assert parse_error_line(box) == expected
+
+
+def test_a_parse_error_on_a_terminal_is_one_line_too():
+    """On a terminal tyro colours its box (ANSI codes), which the one-line reading did not see through: the box
+    came out as before. Run under a pseudo-terminal, as a user types the command."""
+    import pty
+    import subprocess
+    import sys
+
+    from helpers import ROOT
+
+    leader, follower = pty.openpty()
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "cascade_sac.py"), "--nn", "3"], stdin=follower,
+                          stdout=follower, stderr=follower, cwd=ROOT, timeout=120, env={**os.environ, "TERM": "xterm"})
+    os.close(follower)
+    said = b""
+    while True:
+        try:
+            chunk = os.read(leader, 4096)
+        except OSError:  # the terminal's other end is closed: all was read
+            break
+        if not chunk:
+            break
+        said += chunk
+    os.close(leader)
+    lines = [line for line in said.decode().splitlines() if line.strip()]
+    assert proc.returncode == 2 and lines == [
+        "error: Unrecognized options: --nn, 3 (did you mean --n?); see " f"{os.path.join(ROOT, 'cascade_sac.py')} --help"], said

@@ -163,14 +163,34 @@ def test_a_stop_writes_a_checkpoint_at_the_next_step_and_resumes_bit_identical(a
         assert scalars[tag] == expected_scalars[tag], tag
 
 
-def test_a_stop_at_the_last_step_lets_the_run_finish(uninterrupted, tmp_path, monkeypatch, stop_state):
-    """A stop at the run's last step: its checkpoint is the final one, the run ends complete (no stop)."""
+def test_a_stop_at_the_last_step_lets_the_run_finish(uninterrupted, tmp_path, monkeypatch, stop_state, capsys):
+    """A stop at the run's last step (during its last evaluations): its checkpoint is the final one, the run ends
+    complete and says so (it did not stop), and leaves no stop behind for a later run in the process."""
     expected, _ = uninterrupted("sac", False)
     with monkeypatch.context() as patch:
         stop_at(patch, 600)
         result = cs.train(cs.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
     assert_identical(expected, final_state(result, "sac"))
-    assert not runs.STOPPED_BY and not runs.CHECKPOINT_ON_STOP
+    assert not runs.STOPPED_BY and not runs.CHECKPOINT_ON_STOP and not runs.STOP_REQUESTED
+    assert "SIGTERM after the run's last step: it finished instead of stopping" in capsys.readouterr().err
+
+
+def test_a_stop_left_pending_by_an_earlier_run_does_not_defer_the_next_ones(tmp_path, monkeypatch, stop_state,
+                                                                          capsys):
+    """A run of the same process killed mid-way (a notebook, a test) left a run registered to checkpoint on a stop:
+    the next run's stops, even a PPO run's or --evaluate's, which never checkpoint on one, were only recorded and
+    never acted on. Each run (and --evaluate) starts with none registered."""
+    with monkeypatch.context() as patch:
+        kill_at(patch, 50)
+        with pytest.raises(Killed):
+            cs.train(cs.Args(**TINY, track_dir=str(tmp_path)))
+    record.OPEN_WRITERS.clear()
+    assert runs.CHECKPOINT_ON_STOP  # left behind by the killed run
+    runs.STOP_REQUESTED.append(signal.SIGTERM)
+    code, _, err = cli_in_process(capsys, "cascade_sac.py", "--evaluate", str(tmp_path / "missing"))
+    assert code != 0 and not runs.CHECKPOINT_ON_STOP and not runs.STOP_REQUESTED
+    with pytest.raises(KeyboardInterrupt):  # a stop now acts at once
+        runs.stop_signal(signal.SIGTERM, None)
 
 
 def test_a_stop_before_the_first_step_or_a_second_stop_ends_the_run_at_once(stop_state):

@@ -500,3 +500,24 @@ def test_a_quiet_run_keeps_its_progress_line_in_its_folder(tmp_path):
                                  eval_every=0, quiet=True, track_dir=str(tmp_path)))["run_dir"]
     line = open(os.path.join(run_dir, "progress.txt")).read()
     assert "/512 steps" in line and "SPS" in line and "ETA" in line, line
+
+
+def test_a_second_stop_of_the_sweep_passes_on_to_its_runs(monkeypatch):
+    """A first stop ends the sweep's wait (its runs get SIGTERM from it: a SAC or DDPG run then writes a checkpoint
+    at its next step); a second one, while the sweep waits for them, was ignored and could not hurry them: it now
+    sends each running run SIGTERM again, which stops it at once."""
+    import signal
+
+    sent = []
+
+    class Run:
+        def send_signal(self, signum):
+            sent.append(signum)
+
+    monkeypatch.setattr(sweep, "STOP", [])
+    monkeypatch.setattr(sweep, "RUNNING", {Run()})
+    with pytest.raises(KeyboardInterrupt):
+        sweep.interrupt(signal.SIGINT, None)
+    assert sent == [] and sweep.STOP == [signal.SIGINT]
+    sweep.interrupt(signal.SIGINT, None)
+    assert sent == [signal.SIGTERM]
