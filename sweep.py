@@ -815,10 +815,11 @@ def last_line(log: str) -> str:
     try:
         with open(log, "rb") as f:
             f.seek(max(os.path.getsize(log) - 4096, 0))
-            lines = [line.strip() for line in f.read().decode(errors="replace").splitlines() if line.strip()]
+            lines = [line.rstrip() for line in f.read().decode(errors="replace").splitlines() if line.strip()]
     except OSError:
         return "(no log)"
-    line = parse_error_line("\n".join(lines)) or (lines[-1] if lines else "(empty log)")  # a parse error: why, not its box
+    # a parse error: why, not its box (read with the lines' indentation, which tells a flag from its help)
+    line = parse_error_line("\n".join(lines)) or (lines[-1].strip() if lines else "(empty log)")
     return line if len(line) <= 300 else line[:297] + "..."
 
 
