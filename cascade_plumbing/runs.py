@@ -162,7 +162,8 @@ def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
 
 
 def stop_signal(signum, frame) -> None:
-    """SIGTERM and Ctrl-C stop a run (the exit code tells them apart); once the run's final checkpoint is being
+    """SIGTERM and Ctrl-C stop a run (the exit code tells them apart); a SAC or DDPG run that has taken a step
+    writes a checkpoint at its next one first (CHECKPOINT_ON_STOP). Once the run's final checkpoint is being
     written, a stop lets the run finish instead (its last evaluation and logs; the run is complete then)."""
     if FINISHING:
         if not FINISHING[0]:  # one line, not print(): the handler may interrupt a print
