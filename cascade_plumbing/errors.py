@@ -49,7 +49,10 @@ def error_start(text: str) -> int:
     if top >= 0:
         return top
     rule = re.search(r"^[ \t]*-{4,}[ \t]*$", text, flags=re.M)
-    return text.rfind("\n", 0, text.rfind("\n", 0, rule.start()) if rule else 0) + 1 if rule else len(text)
+    if rule is None:
+        return len(text)
+    title_end = text.rfind("\n", 0, rule.start())  # the newline that ends the title's line
+    return text.rfind("\n", 0, max(title_end, 0)) + 1
 
 
 def parse_error_line(text: str) -> str | None:

@@ -360,3 +360,22 @@ def test_a_parse_error_on_a_terminal_is_one_line_too():
     lines = [line for line in said.decode().splitlines() if line.strip()]
     assert proc.returncode == 2 and lines == [
         "error: Unrecognized options: --nn, 3 (did you mean --n?); see " f"{os.path.join(ROOT, 'cascade_sac.py')} --help"], said
+
+
+def test_what_tyro_prints_before_its_error_is_kept(capsys):
+    """A warning tyro prints while parsing stays on stderr, before the one line that replaces its error box."""
+    import sys
+
+    from cascade_plumbing.errors import parse_command_line
+
+    def parse():
+        print("UserWarning: a field without a docstring", file=sys.stderr)
+        print("Unrecognized options\n------\nUnrecognized options: --lr\n------\nFor full helptext, run x.py --help",
+              file=sys.stderr)
+        raise SystemExit(2)
+
+    with pytest.raises(SystemExit) as stop:
+        parse_command_line(parse)
+    assert stop.value.code == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "UserWarning: a field without a docstring", f"error: Unrecognized options: --lr; see {sys.argv[0]} --help"]
