@@ -31,8 +31,9 @@ def parse_command_line(parse: Callable[[], T]) -> T:
         if line is None:
             raise
         text = ANSI.sub("", said.getvalue())
-        said = io.StringIO(text[: text.rfind("\n", 0, error_start(text)) + 1])  # what came before the error
-        print(f"error: {line.rstrip('.')}; see {sys.argv[0]} --help", file=said, flush=True)
+        said = io.StringIO()
+        said.write(text[: text.rfind("\n", 0, error_start(text)) + 1])  # what came before the error
+        said.write(f"error: {line.rstrip('.')}; see {sys.argv[0]} --help\n")
         raise SystemExit(2) from None
     finally:
         sys.stderr.write(said.getvalue())
