@@ -77,7 +77,7 @@ class Args:
     python: str = sys.executable
     """python interpreter the runs use (on a cluster, one that exists on every node)"""
     dry_run: bool = False
-    """print the commands and exit"""
+    """print the commands, each with how far its run is (new, training now, or where it resumes), and exit"""
     list_presets: bool = False
     """print the presets and exit"""
     status_every: float = 30.0
@@ -768,7 +768,8 @@ def sweep() -> None:
                      os.path.join(sweep_dir, "logs", f"{run.run_id}.log"), marker))
     check_templates(todo)
     if args.dry_run:
-        for _, command, _, _ in todo:
+        for run, command, _, _ in todo:
+            print(f"# {run.run_id}: {how_far(command)}")
             print(shlex.join(command))
         print(f"# {len(todo)} runs to do, {skipped} already finished, in {sweep_dir}")
         return
@@ -870,6 +871,38 @@ def alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def how_far(command: list[str]) -> str:
+    """For --dry-run: how far the run of `command` is. A new run; a run training now (its run folder locked by
+    another process), with the progress line it keeps; or where a stopped run resumes (its checkpoint's step)."""
+    if "--resume" not in command:
+        return "new run"
+    run_dir = command[command.index("--resume") + 1]
+    holder = None
+    with contextlib.suppress(OSError):
+        fd = os.open(os.path.join(run_dir, "run.lock"), os.O_RDWR)
+        try:
+            fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # (released with the close below: nothing is held)
+        except OSError:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
+        finally:
+            os.close(fd)
+    if holder is not None:
+        with contextlib.suppress(OSError), open(os.path.join(run_dir, PROGRESS_NAME)) as f:
+            return f"training now (pid {holder}): {f.readline().strip()}"
+    import torch  # (only here: a dry run of new runs needs none)
+
+    path = os.path.join(run_dir, "checkpoint.pt")
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=False)
+        step, saved_args = saved["global_step"], saved["args"]
+    except Exception:  # noqa: BLE001 - the run itself says what is wrong with its checkpoint when it resumes
+        return f"resumes from {run_dir} (its checkpoint cannot be read here; the run will say why)"
+    total = saved_args.get("total_timesteps") or saved_args.get("n", 0) * saved_args.get("k", 0)
+    when = time.strftime("%Y-%m-%d %H:%M", time.localtime(os.path.getmtime(path)))
+    at = f"global_step {step:,}{f' of {total:,}' if total else ''} (its checkpoint of {when})"
+    return f"training now (pid {holder}); its last checkpoint is at {at}" if holder else f"stopped; resumes at {at}"
 
 
 def remove_unresumable(track_dir: str) -> int:
