@@ -119,7 +119,7 @@ class Args:
     batch_size: int = 256
     """the batch size sampled from the replay memory"""
     learning_starts: int = 25_000
-    """transitions collected (since the buffer was last emptied) before updates start"""
+    """uniform-random steps without updates at the start of each net (with `--no-restart-on-new-net`: transitions in the buffer before updates start)"""
     learning_rate: float = 3e-4
     """the learning rate of the actor and critic optimizers"""
     anneal_lr: bool = True

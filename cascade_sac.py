@@ -109,7 +109,7 @@ class Args:
     batch_size: int = 256
     """the batch size sampled from the replay memory"""
     learning_starts: int = 5_000
-    """transitions collected (since the buffer was last emptied) before updates start"""
+    """uniform-random steps without updates at the start of each net (with `--no-restart-on-new-net`: transitions in the buffer before updates start)"""
     policy_lr: float = 3e-4
     """the learning rate of the actor optimizer"""
     q_lr: float = 1e-3
