@@ -51,7 +51,18 @@ def train_killed_at(monkeypatch, mod, step, args, checkpoint=None):
         kill_at(patch, step)
         with pytest.raises(Killed):
             mod.train(args, checkpoint)
-    record.OPEN_WRITERS.clear()  # (the killed run's writer: a real kill leaves it behind too)
+    KILLED_WRITERS.extend(record.OPEN_WRITERS)  # (the killed run's writer: a real kill leaves it behind too)
+    record.OPEN_WRITERS.clear()
+
+
+KILLED_WRITERS = []  # the writers of in-process kills: their flush thread goes on writing into the run folder
+
+
+def close_killed_writers():
+    """Before a killed run's folder is removed or moved: its writers' flush thread (every 120 s) appends to the
+    events file by its path, which made it again while rmtree emptied the folder ("Directory not empty", a CI run)."""
+    while KILLED_WRITERS:
+        KILLED_WRITERS.pop().close()
 
 
 def final_state(result, algo):
@@ -457,6 +468,7 @@ def test_a_resume_from_the_middle_of_an_iteration_writes_no_iteration_file_for_i
     assert "rebuilt" not in capsys.readouterr().out
 
     # killed right after the end of iteration 1, and its iteration_1.pt lost: rebuilt from the checkpoint
+    close_killed_writers()
     shutil.rmtree(run_dir)
     train_killed_at(monkeypatch, mod, 301, args)
     run_dir = only_run_dir(tmp_path)
@@ -475,6 +487,7 @@ def test_a_run_moved_to_another_folder_resumes_there(tmp_path, monkeypatch, caps
     train_killed_at(monkeypatch, cs, 150, cs.Args(**TINY, buffer_size=250, track_dir=str(scratch)))
     moved = tmp_path / "home" / os.path.basename(only_run_dir(scratch))
     os.makedirs(moved.parent)
+    close_killed_writers()
     shutil.move(only_run_dir(scratch), moved)
     shutil.rmtree(scratch)
     scratch.write_text("the scratch disk is gone")  # nothing can be made under the old --track-dir
