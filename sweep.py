@@ -45,7 +45,7 @@ from typing import Literal
 
 import tyro
 
-from cascade_plumbing.errors import fail, parse_command_line, parse_error_line
+from cascade_plumbing.errors import fail, parse_command_line, parse_error_line, unwrapped_errors
 from cascade_plumbing.processes import run_dies_with_parent
 from cascade_plumbing.tracking import PROGRESS_NAME, check_wandb, duration
 
@@ -716,7 +716,7 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
         argv = command[2:]  # the new run's command as it will run (tracking flags and cadence included)
         quiet = io.StringIO()
         try:
-            with contextlib.redirect_stderr(quiet), contextlib.redirect_stdout(io.StringIO()):
+            with contextlib.redirect_stderr(quiet), contextlib.redirect_stdout(io.StringIO()), unwrapped_errors():
                 script_args = tyro.cli(module.Args, args=argv)
         except SystemExit:
             said = quiet.getvalue().strip().splitlines()

@@ -5,9 +5,10 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import os
 import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -24,7 +25,7 @@ def parse_command_line(parse: Callable[[], T]) -> T:
     prints it; anything else tyro says (a warning) goes out unchanged."""
     said = io.StringIO()
     try:
-        with contextlib.redirect_stderr(said):
+        with contextlib.redirect_stderr(said), unwrapped_errors(asks_for_help=bool({"-h", "--help"} & set(sys.argv))):
             return parse()
     except SystemExit as exc:
         line = parse_error_line(said.getvalue()) if exc.code else None
@@ -38,6 +39,25 @@ def parse_command_line(parse: Callable[[], T]) -> T:
     finally:
         sys.stderr.write(said.getvalue())
         sys.stderr.flush()
+
+
+@contextlib.contextmanager
+def unwrapped_errors(asks_for_help: bool = False) -> Iterator[None]:
+    """tyro draws its errors to the terminal's width: a narrow one wraps a flag's line, and the wrapped part reads as
+    another flag. While parsing, a wide "terminal" (COLUMNS) keeps each line whole, unless the command asks for
+    --help (printed for the real terminal)."""
+    if asks_for_help:
+        yield
+        return
+    saved = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "1000"
+    try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = saved
 
 
 ANSI = re.compile(r"\x1b\[[0-9;]*m")  # tyro colours its errors on a terminal
@@ -82,18 +102,25 @@ def parse_error_line(text: str) -> str | None:
     starts = tops[-1:] or [i for i in window if rule(lines[i])][:1]  # plain: the title, then a rule
     if not starts:
         return None
+    content = lines[starts[0] + 1 : ends[-1]]
+    margin = min((indent(line) for line in content if line.strip() and not rule(line)), default=0)  # (box: 1, plain: 2)
     sections: list[list[str]] = [[]]
-    for line in lines[starts[0] + 1 : ends[-1]]:
+    for line in content:
         if rule(line):
             sections.append([])
         else:
-            sections[-1].append(line[1:] if line.startswith(" ") else line)  # (the box's inner margin)
+            sections[-1].append(line[margin:])
     said: list[list[str]] = []  # per section: what is wrong, then a note
-    for heading, *entries in (section for section in sections if section and section[0].strip()):
-        heading, entries = heading.strip(), [entry for entry in entries if entry.strip()]
+    for section in sections:
+        section = [line for line in section if line.strip()]
+        # the heading: the section's unindented lines up to its first indented one (a long one wraps: joined)
+        head = next((i for i, line in enumerate(section) if indent(line) > 0), len(section))
+        if head == 0:
+            continue
+        heading, entries = " ".join(line.strip() for line in section[:head]), section[head:]
         if heading == "Argument helptext:":
             continue
-        if not (heading.endswith(":") and entries and indent(entries[0]) > 0):
+        if not (heading.endswith(":") and entries):
             said.append([" ".join([heading, *(entry.strip() for entry in entries)])])
             continue
         # a heading over indented entries: the entries at the first one's indentation are the flags (or values),

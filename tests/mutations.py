@@ -482,6 +482,16 @@ MUTATIONS += [
         ("numpy acting keeps the views of replaced weights",
          "or any(p.data_ptr() != pointer for p, pointer in cached[4])):", "or False):"),
     )],
+    # a stop of a SAC/DDPG run writes a checkpoint at the next step first (issue 48: runs that lose nothing)
+    Mutation("stop: no checkpoint at the step after a stop", "cascade_plumbing/offpolicy.py",
+             "return bool(STOP_REQUESTED) or super().checkpoint_due(global_step)",
+             "return super().checkpoint_due(global_step)", ("tests/test_offpolicy_resume.py",)),
+    Mutation("stop: a run's stop state outlives it", "cascade_plumbing/offpolicy.py",
+             "        forget_stops()  # (what a run before it in this process left", "        pass  # (",
+             ("tests/test_offpolicy_resume.py::test_a_stop_left_pending_by_an_earlier_run_does_not_defer_the_next_ones",
+              "tests/test_offpolicy_resume.py::test_a_stop_at_the_last_step_lets_the_run_finish")),
+    Mutation("parse errors: the flag tyro suggests left out", "cascade_plumbing/errors.py",
+             "if heading == \"Perhaps you meant:\" and said:", "if False:", ("tests/test_bad_input.py",)),
 ]
 
 

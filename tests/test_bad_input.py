@@ -326,6 +326,11 @@ def test_a_flag_the_command_line_cannot_parse_is_one_line(script, flags, message
      "\u2502     --eval-deterministic, --no-eval-deterministic \u2502\n\u2502         greedy actions \u2502\n"
      "\u2502 \u2500\u2500\u2500\u2500 \u2502\n\u2502 For full helptext, run x.py --help \u2502\n"
      "\u2570\u2500\u2500\u2500\u256f\n", "Unrecognized options: --eval-det (did you mean --eval-deterministic?)"),
+    # the plain form as tyro writes it when stdout is not a terminal (sweep.py's check of a template): a 2-space margin
+    (" Unrecognized options          \n ------------------------------ \n  Unrecognized options: --bogus, 3\n"
+     "  ------------------------------\n  Perhaps you meant:\n      --n INT\n          number of nets\n"
+     "  ------------------------------\n  For full helptext, run sweep.py --help  \n                   \n",
+     "Unrecognized options: --bogus, 3 (did you mean --n?)"),
     ("a run's last line\n", None),
 ])
 def test_parse_error_line_reads_tyros_box_and_plain_forms(box, expected):
@@ -379,3 +384,14 @@ def test_what_tyro_prints_before_its_error_is_kept(capsys):
     assert stop.value.code == 2
     assert capsys.readouterr().err.splitlines() == [
         "UserWarning: a field without a docstring", f"error: Unrecognized options: --lr; see {sys.argv[0]} --help"]
+
+
+def test_a_parse_error_is_read_whole_on_a_narrow_terminal():
+    """tyro draws its box to the terminal's width: on a narrow one a flag's line wrapped, and its wrapped part read as
+    another flag (`--eval-deterministic or --no-eval-deterministic`), or a heading that wrapped (a long path in
+    "Missing from <path> fallback-course:") as a sentence with the flag's whole help."""
+    narrow = {"COLUMNS": "40"}
+    line = error_line(run_script("cascade_sac.py", "--eval-deterministicc", env=narrow))
+    assert "(did you mean --eval-deterministic?)" in line, line
+    line = error_line(run_script("plots/analyze.py", "fallback-course", env=narrow))
+    assert "analyze.py fallback-course: --checkpoint; see " in line, line

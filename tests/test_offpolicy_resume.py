@@ -202,6 +202,14 @@ def test_a_stop_left_pending_by_an_earlier_run_does_not_defer_the_next_ones(tmp_
     assert code != 0 and not runs.CHECKPOINT_ON_STOP and not runs.STOP_REQUESTED
     with pytest.raises(KeyboardInterrupt):  # a stop now acts at once
         runs.stop_signal(signal.SIGTERM, None)
+    # ... and a run started next in the same process (a notebook's next cell) runs through, not stopped at its step 1
+    runs.CHECKPOINT_ON_STOP.append(True)
+    runs.STOP_REQUESTED.append(signal.SIGTERM)
+    try:
+        result = cs.train(cs.Args(**{**TINY, "n": 1, "k": 150}, track_dir=str(tmp_path / "next")))
+    except KeyboardInterrupt:  # (not pytest's own stop)
+        pytest.fail("the next run was stopped by the stop an earlier run left pending")
+    assert result["global_step"] == 150 and not runs.STOP_REQUESTED
 
 
 def test_a_stop_before_the_first_step_or_a_second_stop_ends_the_run_at_once(stop_state):
