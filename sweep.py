@@ -583,16 +583,14 @@ def run_local(todo: list[tuple[Run, list[str], str, str]], workers: int, tracker
     pool.shutdown()
 
 
-def stop_running() -> None:
+def stop_running(hold_lock: bool = True) -> None:
     """SIGTERM to each running run (its main process, which ends its own worker processes): a PPO run stops at its
     last checkpoint, a SAC or DDPG run writes one at its next step first; a run whose final checkpoint is already
-    being written finishes normally."""
-    with RUNNING_LOCK:
+    being written finishes normally. `hold_lock`: False from a signal handler (the interrupted code may hold it)."""
+    with RUNNING_LOCK if hold_lock else contextlib.nullcontext():
         for proc in list(RUNNING):
-            try:
+            with contextlib.suppress(ProcessLookupError):
                 proc.send_signal(signal.SIGTERM)
-            except ProcessLookupError:
-                pass
 
 
 def check_ray_address(address: str, timeout: float = 5.0) -> None:
@@ -650,9 +648,7 @@ def interrupt(signum, frame):
     """Ctrl-C or SIGTERM: the sweep stops. A repeated one while it stops its runs passes on to them: a SAC or DDPG
     run, which writes a checkpoint at its next step when stopped, then stops at once."""
     if STOP:
-        for proc in list(RUNNING):  # (not under RUNNING_LOCK: the interrupted code may hold it)
-            with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGTERM)
+        stop_running(hold_lock=False)
         return
     STOP.append(signum)
     raise KeyboardInterrupt

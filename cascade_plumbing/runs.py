@@ -312,11 +312,11 @@ def stopped(checkpoint: dict | None) -> None:
     signum = STOPPED_BY[-1] if STOPPED_BY else signal.SIGINT
     name = signal.Signals(signum).name
     script = os.path.basename(sys.argv[0])
-    if run_dir is not None and SAVED_AT_STOP and os.path.exists(os.path.join(run_dir, CHECKPOINT_NAME)):
-        where = (f"a checkpoint was written at the stop (global_step={SAVED_AT_STOP[-1]}), "
-                 f"{os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}")
-    elif run_dir is not None and os.path.exists(os.path.join(run_dir, CHECKPOINT_NAME)):
-        where = f"the last checkpoint is {os.path.join(run_dir, CHECKPOINT_NAME)}; continue with: python {script} --resume {run_dir}"
+    path = None if run_dir is None else os.path.join(run_dir, CHECKPOINT_NAME)
+    if path is not None and os.path.exists(path):
+        saved = (f"a checkpoint was written at the stop (global_step={SAVED_AT_STOP[-1]}), {path}" if SAVED_AT_STOP
+                 else f"the last checkpoint is {path}")
+        where = f"{saved}; continue with: python {script} --resume {run_dir}"
     else:
         where = "no checkpoint was written yet, so there is nothing to resume"
         if checkpoint is None and run_dir is not None and remove_unresumable_run(run_dir):

@@ -75,6 +75,12 @@ def assert_identical(a, b):
             torch.testing.assert_close(b[name][key], value, rtol=0, atol=0, msg=f"{name}.{key}")
 
 
+def assert_same_saved_nets(algo, run_a, run_b):
+    """The nets the checkpoints of two run folders hold are bit-identical."""
+    a, b = SCRIPTS[algo].load_checkpoint(run_a), SCRIPTS[algo].load_checkpoint(run_b)
+    assert_identical({name: a[name] for name in NETS[algo]}, b)
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
     """The uninterrupted runs, per (algo, keep_buffer)."""
@@ -123,18 +129,6 @@ def test_a_run_killed_at_any_step_resumes_bit_identical(algo, keep_buffer, kill_
     assert segments and segments[0] == saved["first"] // 16, (segments, saved)
 
 
-@pytest.fixture
-def stop_state():
-    """The stop bookkeeping of cascade_plumbing.runs, emptied before and after (a test's stop must not reach the
-    next run of the same process)."""
-    state = (runs.CHECKPOINT_ON_STOP, runs.STOP_REQUESTED, runs.SAVED_AT_STOP, runs.STOPPED_BY)
-    for each in state:
-        each.clear()
-    yield
-    for each in state:
-        each.clear()
-
-
 def stop_at(monkeypatch, step, signum=signal.SIGTERM):
     """A stop signal (SIGTERM, Ctrl-C) arriving right after env step `step` of the next run, through the scripts'
     own handler: in-process, as run_main installs it."""
@@ -153,7 +147,7 @@ def stop_at(monkeypatch, step, signum=signal.SIGTERM):
 # holds is checked by the kills above)
 @pytest.mark.parametrize("algo,stop_step", [("sac", 99), ("sac", 163), ("sac", 300), ("sac", 563), ("ddpg", 163)])
 def test_a_stop_writes_a_checkpoint_at_the_next_step_and_resumes_bit_identical(algo, stop_step, uninterrupted,
-                                                                              tmp_path, monkeypatch, stop_state):
+                                                                              tmp_path, monkeypatch):
     """SIGTERM or Ctrl-C loses nothing: the run writes a checkpoint at the step after the signal (not only at its
     last periodic one, up to --checkpoint-every steps back), then stops; resumed, it ends as if never stopped."""
     mod = SCRIPTS[algo]
@@ -174,7 +168,7 @@ def test_a_stop_writes_a_checkpoint_at_the_next_step_and_resumes_bit_identical(a
         assert scalars[tag] == expected_scalars[tag], tag
 
 
-def test_a_stop_at_the_last_step_lets_the_run_finish(uninterrupted, tmp_path, monkeypatch, stop_state, capsys):
+def test_a_stop_at_the_last_step_lets_the_run_finish(uninterrupted, tmp_path, monkeypatch, capsys):
     """A stop at the run's last step (during its last evaluations): its checkpoint is the final one, the run ends
     complete and says so (it did not stop), and leaves no stop behind for a later run in the process."""
     expected, _ = uninterrupted("sac", False)
@@ -186,7 +180,7 @@ def test_a_stop_at_the_last_step_lets_the_run_finish(uninterrupted, tmp_path, mo
     assert "SIGTERM after the run's last step: it finished instead of stopping" in capsys.readouterr().err
 
 
-def test_a_stop_left_pending_by_an_earlier_run_does_not_defer_the_next_ones(tmp_path, monkeypatch, stop_state,
+def test_a_stop_left_pending_by_an_earlier_run_does_not_defer_the_next_ones(tmp_path, monkeypatch,
                                                                           capsys):
     """A run of the same process killed mid-way (a notebook, a test) left a run registered to checkpoint on a stop:
     the next run's stops, even a PPO run's or --evaluate's, which never checkpoint on one, were only recorded and
@@ -212,7 +206,7 @@ def test_a_stop_left_pending_by_an_earlier_run_does_not_defer_the_next_ones(tmp_
     assert result["global_step"] == 150 and not runs.STOP_REQUESTED
 
 
-def test_a_stop_before_the_first_step_or_a_second_stop_ends_the_run_at_once(stop_state):
+def test_a_stop_before_the_first_step_or_a_second_stop_ends_the_run_at_once():
     """Before its first step a run has nothing to keep, and a second stop means now: both stop at once."""
     with pytest.raises(KeyboardInterrupt):  # no step taken yet
         runs.stop_signal(signal.SIGINT, None)
@@ -412,11 +406,7 @@ def test_sigkill_then_resume_on_the_command_line(algo, tmp_path):
     again = subprocess.run([sys.executable, os.path.join(ROOT, script), "--resume", run_dir],
                            capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert again.returncode == 0, again.stderr[-2000:]
-    mod = SCRIPTS[algo]
-    a, b = mod.load_checkpoint(only_run_dir(tmp_path / "a")), mod.load_checkpoint(run_dir)
-    for name in NETS[algo]:
-        for key, value in a[name].items():
-            torch.testing.assert_close(b[name][key], value, rtol=0, atol=0, msg=f"{name}.{key}")
+    assert_same_saved_nets(algo, only_run_dir(tmp_path / "a"), run_dir)
 
 
 @pytest.mark.parametrize("algo", ["sac"])
@@ -449,10 +439,7 @@ def test_sigterm_then_resume_on_the_command_line(algo, tmp_path):
     again = subprocess.run([sys.executable, os.path.join(ROOT, script), "--resume", run_dir],
                            capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert again.returncode == 0, again.stderr[-2000:]
-    a, b = SCRIPTS[algo].load_checkpoint(only_run_dir(tmp_path / "a")), SCRIPTS[algo].load_checkpoint(run_dir)
-    for name in NETS[algo]:
-        for key, value in a[name].items():
-            torch.testing.assert_close(b[name][key], value, rtol=0, atol=0, msg=f"{name}.{key}")
+    assert_same_saved_nets(algo, only_run_dir(tmp_path / "a"), run_dir)
 
 
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
