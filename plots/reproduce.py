@@ -182,6 +182,8 @@ def envs_present(folder: str) -> set[str]:
 
 
 def main(args: Args) -> list[str]:
+    if args.final_window < 1 or args.reps < 1:  # before anything is written, as the missing runs below
+        common.fail("--final-window and --reps must be at least 1")
     envs = tuple(e for e in ENV_ORDER if e in envs_present(args.runs))
     if not envs:
         common.fail(f"no exported runs of {', '.join(ENV_ORDER)} in {args.runs}")

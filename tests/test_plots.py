@@ -505,6 +505,17 @@ def test_reproduce_writes_nothing_without_the_standard_runs(tmp_path):
     assert "no exported runs of cascade" in message and not (tmp_path / "out").exists()
 
 
+def test_reproduce_checks_its_numbers_before_writing(tmp_path):
+    """Audit: --final-window 0 (or --reps 0) rewrote Fig. 2's curves, then stopped at the final scores."""
+    from plots import reproduce
+
+    sample = os.path.join(ROOT, "results", "sample")
+    for bad in ({"final_window": 0}, {"reps": 0}):
+        message = error_of(lambda bad=bad: reproduce.main(reproduce.Args(runs=sample, out=str(tmp_path / "out"), **bad)))
+        assert message == "error: --final-window and --reps must be at least 1", message
+        assert not (tmp_path / "out").exists()
+
+
 def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
     """plots/reproduce.py rebuilds every figure and table of results/ from exported run files alone
     (results/sample: two tiny Cascade and PPO runs per seed on Hopper-v4, exported by plots/export_results.py)."""
