@@ -164,7 +164,14 @@ def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
 def stop_signal(signum, frame) -> None:
     """SIGTERM and Ctrl-C stop a run (the exit code tells them apart); a SAC or DDPG run that has taken a step
     writes a checkpoint at its next one first (CHECKPOINT_ON_STOP). Once the run's final checkpoint is being
-    written, a stop lets the run finish instead (its last evaluation and logs; the run is complete then)."""
+    written, a stop lets the run finish instead (its last evaluation and logs; the run is complete then).
+    A stop that comes again within SAME_STOP_S of the last one is the same stop: a job scheduler signals every
+    process of a job and sweep.py passes its own stop on, so a run gets two at once; as a second stop it would
+    end a SAC or DDPG run before its checkpoint, or interrupt a stopping run's last line with a traceback."""
+    now = time.monotonic()
+    if LAST_STOP and now - LAST_STOP[0] < SAME_STOP_S:
+        return
+    LAST_STOP[:] = [now]
     if FINISHING:
         if not FINISHING[0]:  # one line, not print(): the handler may interrupt a print
             os.write(2, f"\r{signal.Signals(signum).name} after the final checkpoint: the run finishes its last "
@@ -183,6 +190,7 @@ def forget_stops() -> None:
     what an earlier run in the same process left, a notebook's or a test's, must not defer this one's stop)."""
     CHECKPOINT_ON_STOP.clear()
     STOP_REQUESTED.clear()
+    LAST_STOP.clear()
 
 
 def stop_after_checkpoint(global_step: int) -> None:
@@ -194,6 +202,9 @@ def stop_after_checkpoint(global_step: int) -> None:
 
 
 STOPPED_BY: list[int] = []
+LAST_STOP: list[float] = []  # time.monotonic() of the latest stop signal acted on
+SAME_STOP_S = 1.0  # a stop's checkpoint takes well under this (SAC, Hopper, 1M rows: ~0.2 s); a person's second
+# Ctrl-C after it still ends the run at once
 # A run whose checkpoints are costly to lose (SAC, DDPG: tens of thousands of steps between them) sets
 # CHECKPOINT_ON_STOP once it has taken a step; a stop then only asks (STOP_REQUESTED) for a checkpoint at the next
 # step, after which the run stops (SAVED_AT_STOP: the step of that checkpoint).

@@ -490,6 +490,10 @@ MUTATIONS += [
              "        forget_stops()  # (what a run before it in this process left", "        pass  # (",
              ("tests/test_offpolicy_resume.py::test_a_stop_left_pending_by_an_earlier_run_does_not_defer_the_next_ones",
               "tests/test_offpolicy_resume.py::test_a_stop_at_the_last_step_lets_the_run_finish")),
+    Mutation("stop: the same stop delivered twice taken as a second stop", "cascade_plumbing/runs.py",
+             "if LAST_STOP and now - LAST_STOP[0] < SAME_STOP_S:", "if False:",
+             ("tests/test_offpolicy_resume.py::test_the_same_stop_delivered_twice_is_one_stop",
+              "tests/test_offpolicy_resume.py::test_sigterm_then_resume_on_the_command_line")),
     Mutation("parse errors: the flag tyro suggests left out", "cascade_plumbing/errors.py",
              "if heading == \"Perhaps you meant:\" and said:", "if False:", ("tests/test_bad_input.py",)),
 ]

@@ -208,13 +208,39 @@ def test_a_stop_left_pending_by_an_earlier_run_does_not_defer_the_next_ones(tmp_
 
 def test_a_stop_before_the_first_step_or_a_second_stop_ends_the_run_at_once():
     """Before its first step a run has nothing to keep, and a second stop means now: both stop at once."""
+    def a_second_later():
+        runs.LAST_STOP[0] -= runs.SAME_STOP_S
+
     with pytest.raises(KeyboardInterrupt):  # no step taken yet
         runs.stop_signal(signal.SIGINT, None)
     runs.STOPPED_BY.clear()
+    a_second_later()
     runs.CHECKPOINT_ON_STOP.append(True)
     assert runs.stop_signal(signal.SIGINT, None) is None and runs.STOP_REQUESTED == [signal.SIGINT]
     with pytest.raises(KeyboardInterrupt):
+        a_second_later()
         runs.stop_signal(signal.SIGTERM, None)
+    assert runs.STOPPED_BY == [signal.SIGTERM]
+
+
+def test_the_same_stop_delivered_twice_is_one_stop():
+    """A job scheduler signals every process of a job, and sweep.py passes its own stop on: a run gets the stop
+    twice within milliseconds. Taken as a second stop, it ended a SAC or DDPG run before its checkpoint (and a
+    third one interrupted its last line with a traceback); within runs.SAME_STOP_S it is the same stop."""
+    runs.CHECKPOINT_ON_STOP.append(True)
+    for signum in (signal.SIGTERM, signal.SIGTERM, signal.SIGINT):
+        try:
+            runs.stop_signal(signum, None)
+        except KeyboardInterrupt:  # (not pytest's own stop)
+            pytest.fail("the repeated stop ended the run before its checkpoint")
+    assert runs.STOP_REQUESTED == [signal.SIGTERM] and not runs.STOPPED_BY
+    runs.forget_stops()
+    with pytest.raises(KeyboardInterrupt):  # a run that stops at once (PPO): the repeat does not interrupt its stop
+        runs.stop_signal(signal.SIGTERM, None)
+    try:
+        runs.stop_signal(signal.SIGTERM, None)
+    except KeyboardInterrupt:
+        pytest.fail("the repeated stop interrupted the stopping run")
     assert runs.STOPPED_BY == [signal.SIGTERM]
 
 
@@ -409,11 +435,12 @@ def test_sigkill_then_resume_on_the_command_line(algo, tmp_path):
     assert_same_saved_nets(algo, only_run_dir(tmp_path / "a"), run_dir)
 
 
-@pytest.mark.parametrize("algo", ["sac"])
-def test_sigterm_then_resume_on_the_command_line(algo, tmp_path):
+@pytest.mark.parametrize("algo,signals", [("sac", 1), ("sac", 2)], ids=["sac", "sac-twice"])
+def test_sigterm_then_resume_on_the_command_line(algo, signals, tmp_path):
     """As a cluster's preemption or a sweep's stop meets a run: SIGTERM in the middle of an iteration, with no
     periodic checkpoint since its start (--checkpoint-every 0). The run writes one at the stop, says so in one line
-    (exit 143), and `--resume` ends with the same nets as a run never stopped."""
+    (exit 143), and `--resume` ends with the same nets as a run never stopped. Twice at once (a scheduler's SIGTERM
+    to every process of the job, and a sweep passing on its own): the same."""
     script = f"cascade_{algo}.py"
     flags = ["--env-id", "Pendulum-v1", "--n", "2", "--k", "600", "--learning-starts", "100", "--batch-size", "32",
              "--eval-every", "0", "--checkpoint-every", "0", "--quiet"]
@@ -428,7 +455,9 @@ def test_sigterm_then_resume_on_the_command_line(algo, tmp_path):
             proc.kill()
             pytest.fail(f"the run ended before it was stopped: {proc.stderr.read()[-2000:]}")
         time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
+    for _ in range(signals):  # the second one 10 ms later: as the same signal, one pending, the kernel merges them
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.01)
     err = proc.communicate(timeout=120)[1]
     assert proc.returncode == 143, err[-2000:]
     lines = [line.strip("\r") for line in err.splitlines() if line.strip()]
