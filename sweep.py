@@ -870,23 +870,21 @@ def alive(pid: int) -> bool:
 
 
 def how_far(command: list[str]) -> str:
-    """For --dry-run: how far the run of `command` is. A new run; a run training now (its run folder locked by
-    another process), with the progress line it keeps; or where a stopped run resumes (its checkpoint's step)."""
+    """For --dry-run: how far the run of `command` is. A new run (or one training now towards its first
+    checkpoint); a run training now (its run folder locked by another process), with the progress line it keeps;
+    or where a stopped run resumes (its checkpoint's step)."""
     if "--resume" not in command:
+        track_dir = command[command.index("--track-dir") + 1] if "--track-dir" in command else None
+        for run_dir in sorted(glob.glob(os.path.join(glob.escape(track_dir), "*__*__*__*"))) if track_dir else ():
+            holder = lock_holder(run_dir)
+            if holder is not None:
+                return training_now(run_dir, holder) or f"training now (pid {holder}), before its first checkpoint"
         return "new run"
     run_dir = command[command.index("--resume") + 1]
-    holder = None
-    with contextlib.suppress(OSError):
-        fd = os.open(os.path.join(run_dir, "run.lock"), os.O_RDWR)
-        try:
-            fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # (released with the close below: nothing is held)
-        except OSError:
-            holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
-        finally:
-            os.close(fd)
-    if holder is not None:
-        with contextlib.suppress(OSError), open(os.path.join(run_dir, PROGRESS_NAME)) as f:
-            return f"training now (pid {holder}): {f.readline().strip()}"
+    holder = lock_holder(run_dir)
+    line = holder and training_now(run_dir, holder)
+    if line:
+        return line
     import torch  # (only here: a dry run of new runs needs none)
 
     path = os.path.join(run_dir, "checkpoint.pt")
@@ -899,6 +897,26 @@ def how_far(command: list[str]) -> str:
     when = time.strftime("%Y-%m-%d %H:%M", time.localtime(os.path.getmtime(path)))
     at = f"global_step {step:,}{f' of {total:,}' if total else ''} (its checkpoint of {when})"
     return f"training now (pid {holder}); its last checkpoint is at {at}" if holder else f"stopped; resumes at {at}"
+
+
+def lock_holder(run_dir: str) -> str | None:
+    """The pid (as its run.lock says it) of the process training in `run_dir` now, or None where none is."""
+    with contextlib.suppress(OSError):
+        fd = os.open(os.path.join(run_dir, "run.lock"), os.O_RDWR)
+        try:
+            fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # (released with the close below: nothing is held)
+        except OSError:
+            return os.read(fd, 64).decode(errors="replace").strip() or "?"
+        finally:
+            os.close(fd)
+    return None
+
+
+def training_now(run_dir: str, holder: str) -> str | None:
+    """A run training now, with the progress line it keeps in its folder (None for a run that keeps none)."""
+    with contextlib.suppress(OSError), open(os.path.join(run_dir, PROGRESS_NAME)) as f:
+        return f"training now (pid {holder}): {f.readline().strip()}"
+    return None
 
 
 def remove_unresumable(track_dir: str) -> int:

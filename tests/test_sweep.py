@@ -527,16 +527,17 @@ def test_a_dry_run_says_how_far_each_run_is(tmp_path):
     """A sweep of hours-long runs stopped and started across days: --dry-run said which runs resume, not how far
     they are (the TensorBoard files had to be read for that). Now each run's line says it: a new run, a stopped one
     with the step it resumes at (its checkpoint's), or one training now with the progress line it keeps (or, from
-    a run without one, its last checkpoint's step)."""
+    a run without one, its last checkpoint's step); a new run training towards its first checkpoint was a "new run"."""
     import torch
 
     from cascade_plumbing.tracking import PROGRESS_NAME
 
     sweep_dir = tmp_path / "sweep"
-    runs = sweep.expand(sweep.Args(preset=["sac"], envs=["Hopper-v4"], seeds=["1", "2"]))
-    cascade_1, baseline_1, cascade_2 = (r for r in runs if (r.label, r.seed) != ("sac", 2))
+    runs = sweep.expand(sweep.Args(preset=["sac"], envs=["Hopper-v4"], seeds=["1", "2", "3"]))
+    cascade_1, baseline_1, cascade_2, baseline_3 = (r for r in runs if (r.label, r.seed) not in (("sac", 2),
+                                                                                              ("cascade_sac", 3)))
     folders = {}
-    for run in (cascade_1, baseline_1, cascade_2):
+    for run in (cascade_1, baseline_1, cascade_2, baseline_3):
         folders[run.run_id] = sweep_dir / "runs" / run.run_id / f"Hopper-v4__{run.label}__{run.seed}__1790000000"
         folders[run.run_id].mkdir(parents=True)
     torch.save({"global_step": 650_000, "args": {"n": 4, "k": 500_000}},
@@ -544,9 +545,10 @@ def test_a_dry_run_says_how_far_each_run_is(tmp_path):
     torch.save({"global_step": 50_000, "args": {"n": 1, "k": 2_000_000}}, folders[baseline_1.run_id] / "checkpoint.pt")
     torch.save({"global_step": 100_000, "args": {"n": 4, "k": 500_000}}, folders[cascade_2.run_id] / "checkpoint.pt")
     (folders[baseline_1.run_id] / PROGRESS_NAME).write_text("steps 61,000/2,000,000 | SPS 95 | ETA 5.7h\n")
-    # two runs training now: each holds its folder's lock, as a run does (one keeps a progress line, one does not)
+    # three runs training now: each holds its folder's lock, as a run does (one keeps a progress line, one does not,
+    # one has written no checkpoint yet)
     holders = []
-    for run in (baseline_1, cascade_2):
+    for run in (baseline_1, cascade_2, baseline_3):
         lock = folders[run.run_id] / "run.lock"
         holders.append(subprocess.Popen([sys.executable, "-c", f"""if True:
             import fcntl, os, sys, time
@@ -558,7 +560,7 @@ def test_a_dry_run_says_how_far_each_run_is(tmp_path):
     try:
         for holder in holders:
             assert holder.stdout.readline().strip() == "locked"
-        proc = run_script("sweep.py", "--preset", "sac", "--envs", "Hopper-v4", "--seeds", "1", "2",
+        proc = run_script("sweep.py", "--preset", "sac", "--envs", "Hopper-v4", "--seeds", "1", "2", "3",
                           "--sweep-dir", sweep_dir, "--dry-run")
     finally:
         for holder in holders:
@@ -570,5 +572,6 @@ def test_a_dry_run_says_how_far_each_run_is(tmp_path):
     assert said[baseline_1.run_id] == f"training now (pid {holders[0].pid}): steps 61,000/2,000,000 | SPS 95 | ETA 5.7h"
     assert said[cascade_2.run_id].startswith(f"training now (pid {holders[1].pid}); its last checkpoint is at "
                                              "global_step 100,000 of 2,000,000")
-    (new,) = [r for r in runs if (r.label, r.seed) == ("sac", 2)]
-    assert said[new.run_id] == "new run"
+    assert said[baseline_3.run_id] == f"training now (pid {holders[2].pid}), before its first checkpoint"
+    for new in (r for r in runs if (r.label, r.seed) in (("sac", 2), ("cascade_sac", 3))):
+        assert said[new.run_id] == "new run"
