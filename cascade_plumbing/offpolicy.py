@@ -231,6 +231,8 @@ class OffPolicyRun(RunRecord):
         self.replay = ReplayFiles(self.run_dir, buffer)
         if needs_buffer:
             self.replay.restore(checkpoint["replay"], checkpoint["path"])
+        else:  # the log goes on at the checkpoint's end, as in the run that was not stopped (its rows are not read)
+            self.replay.skip_to(checkpoint["replay"]["end"])
         return global_step, iteration, steps_done
 
     # --- acting in the training env ---

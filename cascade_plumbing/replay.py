@@ -173,6 +173,11 @@ class ReplayFiles:
                  "were changed or belong to another run: resume the run from its own folder's checkpoint.pt")
         self.flushed = end
 
+    def skip_to(self, end: int) -> None:
+        """An empty buffer whose log goes on at row `end` (a run resumed at an iteration's end, which empties the
+        buffer): the rows before it are not needed, and the next ones get new log rows, not those of old files."""
+        self.buffer.added = self.buffer.start = self.flushed = end
+
     def missing(self, first: int, end: int, source: str) -> None:
         rows = f"the checkpoint's replay buffer (log rows {first}..{end - 1}) is not in {self.folder}"
         if os.path.basename(source) == "checkpoint.pt":

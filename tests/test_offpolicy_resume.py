@@ -91,7 +91,8 @@ def uninterrupted(tmp_path_factory):
             mod = SCRIPTS[algo]
             folder = tmp_path_factory.mktemp(f"{algo}_{keep_buffer}")
             result = mod.train(mod.Args(**TINY, keep_buffer=keep_buffer, buffer_size=250, track_dir=str(folder)))
-            cache[algo, keep_buffer] = (final_state(result, algo), read_scalars(result["run_dir"]))
+            cache[algo, keep_buffer] = (final_state(result, algo), read_scalars(result["run_dir"]),
+                                        mod.load_checkpoint(result["run_dir"])["replay"])
         return cache[algo, keep_buffer]
 
     return get
@@ -113,7 +114,7 @@ def test_a_run_killed_at_any_step_resumes_bit_identical(algo, keep_buffer, kill_
     # small segments (and a 250-row buffer, with --keep-buffer one that wraps): the rows span several files, and old
     # ones are deleted as the run goes
     monkeypatch.setattr(ReplayFiles, "SEGMENT_ROWS", 16)
-    expected, expected_scalars = uninterrupted(algo, keep_buffer)
+    expected, expected_scalars, expected_replay = uninterrupted(algo, keep_buffer)
     args = mod.Args(**TINY, keep_buffer=keep_buffer, buffer_size=250, track_dir=str(tmp_path))
     train_killed_at(monkeypatch, mod, kill_step, args)
     run_dir = only_run_dir(tmp_path)
@@ -123,8 +124,11 @@ def test_a_run_killed_at_any_step_resumes_bit_identical(algo, keep_buffer, kill_
     scalars = read_scalars(run_dir)
     for tag in ("eval/episodic_return", "losses/qf1_loss", "losses/actor_loss", "members/return/net_2"):
         assert scalars[tag] == expected_scalars[tag], tag
-    # replay/ keeps only what the latest checkpoint needs: the rows of the buffer at its step
+    # the replay log goes on where the uninterrupted run's is (a resume at an iteration's end, which needs no rows,
+    # numbered the rows from 0 again and rewrote the files of rows written before)
     saved = mod.load_checkpoint(run_dir)["replay"]
+    assert saved == expected_replay
+    # replay/ keeps only what the latest checkpoint needs: the rows of the buffer at its step
     segments = sorted(int(f[5:-4]) for f in os.listdir(os.path.join(run_dir, "replay")))
     assert segments and segments[0] == saved["first"] // 16, (segments, saved)
 
@@ -151,7 +155,7 @@ def test_a_stop_writes_a_checkpoint_at_the_next_step_and_resumes_bit_identical(a
     """SIGTERM or Ctrl-C loses nothing: the run writes a checkpoint at the step after the signal (not only at its
     last periodic one, up to --checkpoint-every steps back), then stops; resumed, it ends as if never stopped."""
     mod = SCRIPTS[algo]
-    expected, expected_scalars = uninterrupted(algo, False)
+    expected, expected_scalars, _ = uninterrupted(algo, False)
     with monkeypatch.context() as patch:
         stop_at(patch, stop_step)
         with pytest.raises(KeyboardInterrupt):
@@ -171,7 +175,7 @@ def test_a_stop_writes_a_checkpoint_at_the_next_step_and_resumes_bit_identical(a
 def test_a_stop_at_the_last_step_lets_the_run_finish(uninterrupted, tmp_path, monkeypatch, capsys):
     """A stop at the run's last step (during its last evaluations): its checkpoint is the final one, the run ends
     complete and says so (it did not stop), and leaves no stop behind for a later run in the process."""
-    expected, _ = uninterrupted("sac", False)
+    expected = uninterrupted("sac", False)[0]
     with monkeypatch.context() as patch:
         stop_at(patch, 600)
         result = cs.train(cs.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
@@ -249,7 +253,7 @@ def test_a_kill_between_the_rows_and_the_checkpoint_loses_nothing(algo, uninterr
     """Killed after the replay rows of a checkpoint were written but before the checkpoint itself: the files hold
     rows the previous checkpoint does not record, which the resumed run writes again, the same."""
     mod = SCRIPTS[algo]
-    expected, _ = uninterrupted(algo, False)
+    expected = uninterrupted(algo, False)[0]
     original = record.save_checkpoint
 
     def die_at_210(path, payload):
@@ -272,7 +276,7 @@ def test_a_resume_named_in_the_same_second_is_read_after_the_killed_run(uninterr
     a resume named within the second of the killed run's file could sort before it (count 10 before 9, or another
     host), and its curves were read out of order. Here the killed run's file is renamed to sort after anything
     named now; the resumed run's file must still come last."""
-    expected, expected_scalars = uninterrupted("sac", False)
+    expected, expected_scalars, _ = uninterrupted("sac", False)
     train_killed_at(monkeypatch, cs, 141, cs.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
     run_dir = only_run_dir(tmp_path)
     [killed] = [name for name in os.listdir(run_dir) if name.startswith("events.out.tfevents.")]
@@ -310,7 +314,7 @@ def test_a_corrupt_checkpoint_names_an_iteration_file_only_if_it_can_continue(ke
         assert error.endswith(f"continue the run from there with: python cascade_sac.py --resume {iteration_1}")
         code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", iteration_1)
         assert code == 0 and error == "", error
-        expected, _ = uninterrupted("sac", False)
+        expected = uninterrupted("sac", False)[0]
         final = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)
         assert final["global_step"] == 600
         assert_identical({name: expected[name] for name in ("actor", "qf")},
