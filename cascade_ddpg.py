@@ -105,7 +105,7 @@ class Args:
     keep_buffer: bool = False
     """ablation: keep the replay buffer when a base net is added (standard Cascade empties it)"""
     reset_critic: bool = False
-    """ablation: fresh critic, target critic and critic optimizer when a base net is added (standard: kept)"""
+    """ablation: fresh critic, target critic and critic optimizer when a base net is added (standard: the critic is kept; its target is re-copied and its optimizer recreated, see --restart-on-new-net)"""
     restart_on_new_net: bool = True
     """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critic re-copied, target actor = copy of the whole cascade, critic optimizer recreated; `--no-restart-on-new-net`: target critic and critic optimizer kept, the target actor gets the new net with the online net's init, the current policy collects the warm-up (the paper's text); the actor optimizer is new either way"""
 
@@ -121,7 +121,7 @@ class Args:
     learning_starts: int = 25_000
     """uniform-random steps without updates at the start of each net (with `--no-restart-on-new-net`: transitions in the buffer before updates start)"""
     learning_rate: float = 3e-4
-    """the learning rate of the actor and critic optimizers"""
+    """the initial learning rate of the actor and critic optimizers (annealed to 0 within each iteration unless --no-anneal-lr)"""
     anneal_lr: bool = True
     """anneal the learning rate linearly to 0 within each iteration (the paper's code; for n=1 over the run)"""
     adam_eps: float = 1e-5
@@ -147,13 +147,13 @@ class Args:
     checkpoint_every: int = 50_000
     """also checkpoint every this many env steps, besides the end of every iteration and the step after a stop (Ctrl-C, SIGTERM) (0: only those); a checkpoint holds the replay buffer (the rows added since the previous one go to the run folder's replay/)"""
     resume: str | None = None
-    """continue a killed run exactly from its latest checkpoint (`runs/<run_name>`, or its checkpoint.pt), replay buffer included"""
+    """continue a killed run exactly: `runs/<run_name>` (its latest checkpoint) or a checkpoint file (checkpoint.pt, iteration_<i>.pt), replay buffer included; the saved settings are used"""
     evaluate: str | None = None
     """evaluate a saved model (`runs/<run_name>` or a checkpoint file) for --eval-episodes episodes and exit"""
     members: bool = False
     """with --evaluate: also report the return of each base net acting alone"""
     quiet: bool = False
-    """no progress display"""
+    """no progress line and no messages while training (warnings and errors still go to stderr); sweep.py passes it"""
 
 
 # ----------------------------------------------------------------------------------------------

@@ -170,7 +170,7 @@ class Args:
     members: bool = False
     """with --evaluate: also report the return of each base net acting alone"""
     quiet: bool = False
-    """no progress display"""
+    """no progress line and no messages while training (warnings and errors still go to stderr); sweep.py passes it"""
 
 
 # ==============================================================================================

@@ -101,13 +101,13 @@ class Args:
     num_layers: int = 2
     """number of hidden layers of a base net"""
     fallback_init: float = 0.5
-    """initial fallback weight lambda of each new base net, in (0, 1) (Fig. 11: 0.05, 0.5, 0.9)"""
+    """initial fallback weight lambda of each new base net, in (0, 1) (the flagship's Fig. 11 ablation: 0.05, 0.5, 0.9)"""
     freeze_previous: bool = False
-    """only the newest base net trains; older ones are frozen (Fig. 4, 13 ablation)"""
+    """only the newest base net trains; older ones are frozen (the flagship's Fig. 4 ablation)"""
     start_full: bool = False
-    """build all n base nets at the start instead of one per iteration (Fig. 5 ablation; as the paper's code, one critic for the whole run, while Adam and the LR cycle still restart every k)"""
+    """build all n base nets at the start instead of one per iteration (the flagship's Fig. 5 ablation; as the paper's code, one critic for the whole run, while Adam and the LR cycle still restart every k)"""
     lr_schedule: Literal["cyclic", "global", "constant"] = "cyclic"
-    """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (Fig. 12); constant: no decay"""
+    """cyclic: linear decay to 0 within each iteration (standard); global: one decay over the whole run (the flagship's Fig. 12 ablation); constant: no decay"""
 
     # PPO (CleanRL ppo.py defaults)
     learning_rate: float = 2.5e-4
@@ -433,6 +433,7 @@ def train(args: Args, checkpoint: dict | None = None,
         writer.add_scalar("eval/episodic_return_std", returns.std(), step)
         for j, std in enumerate(fallback_std.mean(0)):
             writer.add_scalar(f"cascade/fallback_std/net_{j + 2}", std, step)
+        run.progress.last_eval = float(returns.mean())  # for the progress file sweep.py shows
         say(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
 
     # Rollout storage, preallocated once
@@ -540,7 +541,7 @@ def train(args: Args, checkpoint: dict | None = None,
                 scalars[f"cascade/contribution/net_{j + 1}"] = w
             scalars["cascade/fallback_product"] = mean_weight[0].item()
             scalars["cascade/size"] = size
-            run.log_update(scalars, global_step)
+            run.log_update(scalars, global_step, size)
             run.stop_if_not_finite(loss, params, global_step, f"iteration {iteration}, update {update}")
 
             end_of_iteration = update == updates_per_iteration

@@ -95,9 +95,9 @@ class Args:
     keep_buffer: bool = False
     """ablation: keep the replay buffer when a base net is added (standard Cascade empties it)"""
     reset_critic: bool = False
-    """ablation: fresh critics, targets and critic optimizer when a base net is added (standard: kept)"""
+    """ablation: fresh critics, targets and critic optimizer when a base net is added (standard: the critics are kept; their targets are re-copied and their optimizer recreated, see --restart-on-new-net)"""
     restart_on_new_net: bool = True
-    """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critics re-copied, critic optimizer recreated; `--no-restart-on-new-net`: targets and optimizer kept, the current policy collects the warm-up (the paper's text)"""
+    """when a net is added, restart as the paper's code does: --learning-starts uniform-random steps without updates, target critics re-copied, critic optimizer recreated; `--no-restart-on-new-net`: target critics and critic optimizer kept, the current policy collects the warm-up (the paper's text); the actor optimizer is new either way"""
 
     # SAC (CleanRL sac_continuous_action's defaults, except where the paper's code differs: docs/sac_ddpg.md)
     buffer_size: int = 1_000_000
@@ -139,13 +139,13 @@ class Args:
     checkpoint_every: int = 50_000
     """also checkpoint every this many env steps, besides the end of every iteration and the step after a stop (Ctrl-C, SIGTERM) (0: only those); a checkpoint holds the replay buffer (the rows added since the previous one go to the run folder's replay/)"""
     resume: str | None = None
-    """continue a killed run exactly from its latest checkpoint (`runs/<run_name>`, or its checkpoint.pt), replay buffer included"""
+    """continue a killed run exactly: `runs/<run_name>` (its latest checkpoint) or a checkpoint file (checkpoint.pt, iteration_<i>.pt), replay buffer included; the saved settings are used"""
     evaluate: str | None = None
     """evaluate a saved model (`runs/<run_name>` or a checkpoint file) for --eval-episodes episodes and exit"""
     members: bool = False
     """with --evaluate: also report the return of each base net acting alone"""
     quiet: bool = False
-    """no progress display"""
+    """no progress line and no messages while training (warnings and errors still go to stderr); sweep.py passes it"""
 
 
 # ----------------------------------------------------------------------------------------------

@@ -154,7 +154,7 @@ class Args:
     deterministic: bool = False
     """with --evaluate: act with the mean action instead of sampling"""
     quiet: bool = False
-    """no progress display"""
+    """no progress line and no messages while training (warnings and errors still go to stderr); sweep.py passes it"""
 
 
 # ==============================================================================================

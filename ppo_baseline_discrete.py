@@ -308,6 +308,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         eval_calls += 1
         run.writer.add_scalar("eval/episodic_return", returns.mean(), step)
         run.writer.add_scalar("eval/episodic_return_std", returns.std(), step)
+        run.progress.last_eval = float(returns.mean())  # for the progress file sweep.py shows
         say(f"global_step={step}, eval/episodic_return={returns.mean():.1f} ± {returns.std():.1f}")
 
     # Rollout storage, preallocated once
@@ -370,7 +371,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
         batch = {"obs": obs.reshape(-1, obs_dim), "logprobs": logprobs.reshape(-1), "actions": actions.reshape(-1),
                  "advantages": advantages.reshape(-1), "returns": returns.reshape(-1), "values": values.reshape(-1)}
         loss, scalars = ppo_update(actor, critic, optimizer, batch, args)
-        run.log_update(scalars, global_step)  # CleanRL's names
+        run.log_update(scalars, global_step, 1)  # CleanRL's names
         run.stop_if_not_finite(loss, params, global_step, f"update {update}")
         if update == total_updates and episodes is not None and global_step % args.eval_every >= args.num_envs:
             # the final policy, if the last step was not an eval step: logged before the final checkpoint, so that

@@ -155,11 +155,12 @@ class DiscreteRun(RunRecord):
                    "next_obs": next_obs.cpu(), "next_done": next_done.cpu(), "eval_calls": eval_calls, **learner},
                   global_step, iteration_end)
 
-    def log_update(self, scalars: dict[str, float], global_step: int) -> None:
-        """An update's scalars, then the SPS and (--track --capture-video) the training videos finished since."""
+    def log_update(self, scalars: dict[str, float], global_step: int, size: int) -> None:
+        """An update's scalars, then the SPS, the progress file with the policy's `size` in base nets (sweep.py
+        shows it) and (--track --capture-video) the training videos finished since."""
         for tag, value in scalars.items():
             self.writer.add_scalar(tag, value, global_step)
-        self.tick(global_step, 0)
+        self.tick(global_step, size)
 
     def stop_if_not_finite(self, loss: torch.Tensor, params: list[torch.Tensor], global_step: int, where: str) -> None:
         """The non-finite guard: stop before anything bad is written to the checkpoint."""

@@ -494,6 +494,12 @@ MUTATIONS += [
              "if LAST_STOP and now - LAST_STOP[0] < SAME_STOP_S:", "if False:",
              ("tests/test_offpolicy_resume.py::test_the_same_stop_delivered_twice_is_one_stop",
               "tests/test_offpolicy_resume.py::test_sigterm_then_resume_on_the_command_line")),
+    Mutation("replay: a resume at an iteration's end numbers the log from row 0 again", "cascade_plumbing/replay.py",
+             "self.buffer.added = self.buffer.start = self.flushed = end", "pass",
+             ("tests/test_offpolicy_resume.py::test_a_run_killed_at_any_step_resumes_bit_identical",)),
+    Mutation("discrete progress file: the policy's base nets left out", "cascade_plumbing/discrete.py",
+             "self.tick(global_step, size)", "self.tick(global_step, 0)",
+             ("tests/test_discrete.py::test_cascade_discretized_hopper_run_writes_expected_scalars",)),
     Mutation("parse errors: the flag tyro suggests left out", "cascade_plumbing/errors.py",
              "if heading == \"Perhaps you meant:\" and said:", "if False:", ("tests/test_bad_input.py",)),
 ]
