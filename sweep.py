@@ -726,8 +726,22 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
             fail(f"'{template}' on {run.env_id}: {str(exc).removeprefix('error: ')}")
 
 
+def refuse_repeated_list_flags(argv: list[str]) -> None:
+    """A list flag given twice (`--seeds 1 --seeds 2`) keeps only its last values in tyro: a grid silently smaller
+    than the one asked for. Refused in one line; the values go after one flag."""
+    for name in ("preset", "command", "envs", "seeds"):
+        given = [token for token in argv if token.split("=")[0] == f"--{name}"]
+        if len(given) > 1:
+            example = "'cascade_sac.py --n 2' 'cascade_ddpg.py'" if name == "command" else "a b"
+            fail(f"--{name} is given {len(given)} times, and only its last values would count; give all its values "
+                 f"after one --{name}, e.g. --{name} {example}")
+
+
 def sweep() -> None:
     args = parse_command_line(lambda: tyro.cli(Args, description=__doc__.split("\n\n")[0]))
+    refuse_repeated_list_flags(sys.argv[1:])
+    if args.sweep_dir is not None and not args.sweep_dir.strip():  # (`--sweep-dir "$DIR"` with DIR unset)
+        fail("--sweep-dir is empty; pass a folder, or leave it out for sweeps/<presets>")
     if args.workers < 1:
         fail(f"--workers must be at least 1 (got {args.workers})")
     if not args.status_every > 0:

@@ -308,10 +308,17 @@ def test_bad_input(tmp_path):
              (["--preset", "nope"], "unknown preset 'nope'"),
              (["--command", "train.py --n 2"], "unknown script"),
              (["--preset", "standard", "--seeds", "1", "two"], "--seeds must be integers"),
-             ([], "nothing to run")]
+             ([], "nothing to run"),
+             # tyro keeps a repeated list flag's last values only: a grid smaller than asked for
+             (["--preset", "sac", "--preset", "ddpg", "--dry-run"], "--preset is given 2 times, and only its last values"),
+             (["--command", TINY, "--command", TINY, "--dry-run"], "--command is given 2 times"),
+             (["--preset", "sac", "--seeds", "1", "--seeds=2", "--dry-run"], "--seeds is given 2 times"),
+             (["--preset", "sac", "--envs", "Hopper-v4", "--envs", "Walker2d-v4", "--dry-run"], "--envs is given 2 times")]
     for extra, message in cases:
         proc = run_script("sweep.py", *extra, "--sweep-dir", tmp_path)
         assert proc.returncode != 0 and message in proc.stderr, (extra, proc.stderr)
+    proc = run_script("sweep.py", "--command", TINY, "--sweep-dir", "", "--dry-run")
+    assert proc.returncode != 0 and "--sweep-dir is empty" in proc.stderr, proc.stderr
     with socket.socket() as s:  # a port with nothing listening
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
