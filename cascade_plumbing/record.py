@@ -26,6 +26,7 @@ from .runs import (
     lock_run_dir,
     remove_unresumable_run,
     rng_states,
+    script_file,
     set_rng_states,
     unlock_run_dir,
 )
@@ -169,7 +170,8 @@ class RunRecord:
         """Write the checkpoint atomically, with what every run keeps (env states, RNG streams, clock, W&B run
         id); at the end of iteration i also as iteration_<i>.pt."""
         payload.update(elapsed=time.time() - self.start_time, env_states=self.envs.call("get_state"),
-                       rng=rng_states(), wandb_run_id=self.wandb_run_id, global_step=global_step)
+                       rng=rng_states(), wandb_run_id=self.wandb_run_id, global_step=global_step,
+                       script=script_file(type(self.args)))  # (a copy's checkpoints resume with the copy only)
         # the logs up to this step on disk first: a resume hides what was logged after the checkpoint's step
         # (purge_step), and a SIGKILL right after the checkpoint would lose what the writer still held
         self.writer.flush()

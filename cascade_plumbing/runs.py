@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import inspect
 import os
 import random
 import shutil
@@ -143,6 +144,21 @@ def refuse_idle_flags(args: Any, given: set[str]) -> None:
     for name, why in rules:
         if name in given:
             fail(f"--{name.replace('_', '-')} {why}; leave it out")
+
+
+def script_file(args_type: type) -> str:
+    """The file name of the script that defines `args_type`: cascade_sac.py, or a copy's own (my_idea.py)."""
+    return os.path.basename(inspect.getfile(args_type))
+
+
+def refuse_another_scripts_checkpoint(checkpoint: dict, args_type: type, flag: str) -> None:
+    """A checkpoint written by another copy of a script (`cp cascade_sac.py my_idea.py`: the same checkpoint format)
+    is refused in one line: resumed or evaluated by this one it would go on with this one's code, a silently wrong
+    run, or fail on the copy's own flags. (Checkpoints written before the file name was saved are not checked.)"""
+    written_by = checkpoint.get("script")
+    if written_by and written_by != (this := script_file(args_type)):
+        fail(f"{checkpoint['path']} was written by {written_by}, not {this}: the two may differ in code and flags; "
+             f"use the script that wrote it: python {written_by} --{flag} {checkpoint['path']}")
 
 
 def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
@@ -427,7 +443,8 @@ EVALUATE_FIELDS = {"evaluate", "eval_episodes", "seed", "capture_video", "torch_
                    "eval_deterministic", "quiet", "cuda"}
 
 
-def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], Any]) -> None:
+def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], Any],
+                  load_checkpoint: Callable[[str], dict]) -> None:
     """--evaluate: the saved model on the env it was trained on. Flags it would ignore are refused in one line; a
     stop (Ctrl-C, SIGTERM) ends in one line too (exit 130 / 143): nothing of a run is at stake."""
     if args.resume:
@@ -443,6 +460,7 @@ def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], An
              f"settings it was trained with; leave it out (with --evaluate only "
              f"{', '.join('--' + name.replace('_', '-') for name in applying)} apply)")
     check_seed(args.seed)
+    refuse_another_scripts_checkpoint(load_checkpoint(args.evaluate), type(args), "evaluate")
     forget_stops()
     signal.signal(signal.SIGTERM, stop_signal)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
@@ -469,11 +487,12 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
             fail(f"--{flag} is empty; pass a run folder or a checkpoint file")
     given = explicit_fields(args_type, sys.argv[1:])
     if args.evaluate:
-        evaluate_only(args, given, evaluate_saved)
+        evaluate_only(args, given, evaluate_saved, load_checkpoint)
         return
     checkpoint = None
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
+        refuse_another_scripts_checkpoint(checkpoint, args_type, "resume")
         refuse_overwriting_later_work(checkpoint)
         args = resumed_args(args, checkpoint, given)
     else:

@@ -16,7 +16,7 @@ import torch
 import cascade_plumbing.fast as fast_paths
 import cascade_ppo_continuous as cpc
 import ppo_baseline as pb
-from helpers import ROOT, only_run_dir, read_scalars
+from helpers import ROOT, error_line_in_process, only_run_dir, read_scalars
 
 TINY = dict(num_steps=256, num_minibatches=4, update_epochs=2, eval_every=0, checkpoint_every=0, quiet=True)
 
@@ -329,6 +329,13 @@ def test_a_copy_elsewhere_runs_once_the_package_is_installed(tmp_path):
     help_text = subprocess.run([sys.executable, str(tmp_path / "mine.py"), "--help"], capture_output=True, text=True,
                                cwd=tmp_path, timeout=120, env=env)
     assert help_text.returncode == 0 and "--autograd" in help_text.stdout
+    # the copy's run, resumed or evaluated by the original (the same checkpoint format), would go on with the
+    # original's code: refused in one line that names the copy
+    run_path = str(tmp_path / "runs" / run_dir)
+    for flag in ("--resume", "--evaluate"):
+        line = error_line_in_process("cascade_ppo_continuous.py", flag, run_path)
+        assert line.startswith(f"error: {run_path}/checkpoint.pt was written by mine.py, not cascade_ppo_continuous.py")
+        assert line.endswith(f"python mine.py {flag} {run_path}/checkpoint.pt"), line
 
 
 def test_a_non_finite_loss_of_section_1_stops_the_run_as_autograd_would(tmp_path, capsys):
