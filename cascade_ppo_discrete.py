@@ -410,8 +410,8 @@ def train(args: Args, checkpoint: dict | None = None,
     updates_per_iteration = args.k // batch_size
     total_updates = args.n * updates_per_iteration
     if args.k % batch_size and checkpoint is None:
-        say(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
-            f"{updates_per_iteration} updates = {updates_per_iteration * batch_size} steps")
+        print(f"note: k={args.k} is not a multiple of the batch size {batch_size}; each iteration runs "
+              f"{updates_per_iteration} updates = {updates_per_iteration * batch_size} steps")  # (with --quiet too)
     say(f"{args.env_id}: {num_actions} discrete actions"
         f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
     run = DiscreteRun(args, checkpoint, envs, total_updates * batch_size,

@@ -287,8 +287,8 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
     total_updates = args.total_timesteps // batch_size
     updates_per_cycle = max(args.cycle_steps // batch_size, 1)
     if args.total_timesteps % batch_size and checkpoint is None:
-        say(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
-            f"the run does {total_updates} updates = {total_updates * batch_size} steps")
+        print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
+              f"the run does {total_updates} updates = {total_updates * batch_size} steps")  # (with --quiet too)
     say(f"{args.env_id}: {num_actions} discrete actions"
         f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
     run = DiscreteRun(args, checkpoint, envs, total_updates * batch_size)

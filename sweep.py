@@ -305,18 +305,22 @@ def rollout_steps(script: str, flags: list[str]) -> int | None:
     return num_envs * num_steps if num_steps >= 1 else None
 
 
-def scale_template(script: str, flags: list[str], scale: float, template: str) -> tuple[list[str], list[str], float]:
-    """A template's flags at `scale`, the checkpoint cadence to add, and the smallest scale its PPO budgets allow:
-    (flags, cadence, smallest scale).
+def scale_template(script: str, flags: list[str], scale: float,
+                   template: str) -> tuple[list[str], list[str], float, tuple[float, str, int, int]]:
+    """A template's flags at `scale`, the checkpoint cadence to add, the smallest scale its PPO budgets allow, and
+    the PPO budget that rounding to whole rollouts moves most: (flags, cadence, smallest scale, (relative change,
+    flag, steps, exact scaled steps)).
 
     At scale 1 the flags are the command as written. Otherwise every step count is multiplied by `scale`, where the
     template gives it and where it leaves the script's default (then added, scaled): the budgets (SCALED_BUDGETS),
     the off-policy warm-up, the evaluation cadence and, under `--lr-schedule cyclic`, the LR cycle (part of the run's identity: they change what it computes or
     logs), and the checkpoint cadence the sweep adds where the template leaves it (not part of the identity). A 0
-    (off) stays 0. The caller refuses a scale below the smallest one (a PPO budget below one rollout: raising it
-    would break the equal budgets a figure compares)."""
+    (off) stays 0. A PPO budget is rounded to the nearest whole number of rollouts (the script would round it down
+    to them: at 0.001, discrete Cascade's 10 iterations of --k 1000 were 10 x 512 steps against its baseline's 9,728).
+    The caller refuses a scale below the smallest one (a PPO budget below one rollout: raising it would break the
+    equal budgets a figure compares), and one whose rounding moves a budget by more than MAX_ROUNDING."""
     if scale == 1:
-        return list(flags), [], 0.0
+        return list(flags), [], 0.0, (0.0, "", 0, 0)
     out = list(flags)
     field_name, flag, switch, on = CYCLE_DEFAULT
     defaults = [*SCALED_DEFAULTS, *([(field_name, flag)] if flag_value(out, switch) == on else [])]
@@ -325,10 +329,10 @@ def scale_template(script: str, flags: list[str], scale: float, template: str) -
         if isinstance(default, int) and flag_value(out, flag) is None:
             out += [flag, str(default)]
     rollout = rollout_steps(script, out)
-    smallest = 0.0
+    smallest, rounding = 0.0, (0.0, "", 0, 0)
 
     def scaled(name: str, value: str) -> str:
-        nonlocal smallest
+        nonlocal smallest, rounding
         try:
             steps = int(value)
         except ValueError:
@@ -342,6 +346,8 @@ def scale_template(script: str, flags: list[str], scale: float, template: str) -
             return str(max(new, min(MIN_CADENCE, steps)))
         if rollout:
             smallest = max(smallest, rollout / steps)
+            new = max(round(steps * scale / rollout), 1) * rollout
+            rounding = max(rounding, (abs(new / (steps * scale) - 1), name, new, int(round(steps * scale))))
         return str(new)
 
     for i, flag in enumerate(out):
@@ -357,7 +363,33 @@ def scale_template(script: str, flags: list[str], scale: float, template: str) -
     if default and flag_value(out, CADENCE_FLAG) is None:
         # a scaled run left at the script's default would write no checkpoint before its end
         cadence = [CADENCE_FLAG, scaled(CADENCE_FLAG, str(default))]
-    return out, cadence, smallest
+    return out, cadence, smallest, rounding
+
+
+MAX_ROUNDING = 0.1  # the most a PPO budget may move by rounding to whole rollouts (5 rollouts or more: at most 10%)
+
+
+def scale_problem(templates: list[tuple[str, str, list[str]]], scale: float) -> tuple[str, float]:
+    """What is wrong with `scale` for the (label, script, flags) `templates` ("" if nothing), and the smallest scale
+    that gives every PPO budget one rollout."""
+    scaled = [(scale_template(script, flags, scale, shlex.join([script, *flags])), shlex.join([script, *flags]))
+              for _, script, flags in templates]
+    smallest, template = max((result[2], template) for result, template in scaled)
+    if smallest > scale:
+        return f"makes a budget of '{template}' less than one PPO rollout", smallest
+    (change, flag, steps, exact), template = max((result[3], template) for result, template in scaled)
+    if change > MAX_ROUNDING:
+        return (f"gives '{template}' {flag} {steps} (whole PPO rollouts) instead of {exact}, {100 * change:.0f}% "
+                "off, which would skew the budgets a figure compares"), smallest
+    return "", smallest
+
+
+def a_scale_that_works(templates: list[tuple[str, str, list[str]]], smallest: float) -> float:
+    """The first scale of two significant figures from `smallest` up at which `scale_problem` finds nothing."""
+    scale = smallest_scale_that_works(smallest)
+    while scale < 1 and scale_problem(templates, scale)[0]:
+        scale = round(scale + 10 ** (math.floor(math.log10(scale)) - 1), 12)
+    return min(scale, 1.0)
 
 
 def smallest_scale_that_works(needed: float) -> float:
@@ -409,21 +441,21 @@ def expand(args: Args) -> list[Run]:
         fail(f"--scale must be positive (got {args.scale}); e.g. 0.01 for a quick check, 1 for the paper's budgets")
     if not templates:
         fail("nothing to run: give --preset NAME (see --list-presets) and/or --command TEMPLATE")
-    scaled, needed = [], []
+    scaled = []
     for label, script, flags in templates:
         template = shlex.join([script, *flags])
         for flag in flags:
             if flag_name(flag) in SWEEP_FLAGS:
                 fail(f"'{template}' sets {flag_name(flag)}, which the sweep sets for each run itself: give "
                      "env ids with --envs and seeds with --seeds, and the sweep folder with --sweep-dir")
-        template_flags, cadence, smallest = scale_template(script, flags, args.scale, template)
+        template_flags, cadence, _, _ = scale_template(script, flags, args.scale, template)
         scaled.append((label, script, template_flags, cadence))
-        needed.append((smallest, template))
-    smallest, template = max(needed)
-    if args.scale < 1 and smallest > args.scale:
-        at_least = smallest_scale_that_works(smallest)
-        fail(f"--scale {args.scale:g} makes a budget of '{template}' less than one PPO rollout; use --scale "
-             f"{at_least:.2g} or more")
+    problem, smallest = scale_problem(templates, args.scale)
+    if problem:
+        works = a_scale_that_works(templates, max(smallest, min(args.scale, 1.0)))
+        which = "the smallest that works" if smallest > args.scale else "the next one up that works"
+        fail(f"--scale {args.scale:g} {problem}; use --scale {works:.2g} ({which}: every PPO budget at least one "
+             "rollout and within 10% of its scaled value once rounded to whole rollouts)")
     runs, seen = [], set()
     # env by env, seed by seed: the runs one figure panel compares finish together
     for env_id in args.envs:

@@ -19,8 +19,9 @@ TINY = ("cascade_ppo_continuous.py --n 1 --k 2048 --num-steps 512 --num-minibatc
 
 @pytest.mark.parametrize("preset", sorted(sweep.PRESETS))
 def test_every_preset_expands_to_the_papers_grid(preset):
+    # (at 0.01 the 16 nets of "tiny" get --k 4096, 18% off 5000: refused, test_scale_keeps_budgets_equal...)
     runs = sweep.expand(sweep.Args(preset=[preset], envs=["Hopper-v4", "Walker2d-v4"], seeds=["1", "2", "3"],
-                                   scale=0.01))
+                                   scale=0.02))
     entries = sweep.PRESETS[preset][1]
     assert len(runs) == len(entries) * 2 * 3
     assert {r.label for r in runs} == {label for label, _, _ in entries}
@@ -30,9 +31,14 @@ def test_every_preset_expands_to_the_papers_grid(preset):
         command = run.command(sys.executable, "/tmp/none")
         assert command[command.index("--exp-name") + 1] == run.label
         for flag in ("--k", "--total-timesteps", "--cycle-steps"):  # the budgets in env steps (Fig. 3's cycle too)
-            if flag in run.flags:  # budgets scaled by 0.01 exactly (the runs a figure compares keep equal budgets)
+            if flag in run.flags:  # budgets scaled by 0.02 (the runs a figure compares keep equal budgets), a PPO
+                # script's in the nearest whole rollouts (which it would round down to)
                 original = dict(zip(*[iter(dict((lab, f) for lab, _, f in entries)[run.label].split())] * 2))
-                assert int(run.flags[run.flags.index(flag) + 1]) == round(int(original[flag]) * 0.01)
+                expected = round(int(original[flag]) * 0.02)
+                rollout = sweep.rollout_steps(run.script, run.flags)
+                if rollout:
+                    expected = max(round(expected / rollout), 1) * rollout
+                assert int(run.flags[run.flags.index(flag) + 1]) == expected
         # the evaluation cadence too (the presets' 50000, the scripts' default 10000), not below 1000 steps
         assert sweep.flag_value(run.flags, "--eval-every") == "1000"
         # and a checkpoint cadence scaled with them (the PPO scripts' default 100000: one rollout)
@@ -53,7 +59,7 @@ def test_scale_scales_the_checkpoint_cadence():
         assert sweep.script_default(script, "checkpoint_every") == 50_000, script
         assert one(f"{script} --n 2 --k 1000000", 0.01).cadence == ["--checkpoint-every", "2048"]
     run = one("cascade_ppo_continuous.py --n 6 --k 1000000", 0.01)
-    assert run.flags == ["--n", "6", "--k", "10000", "--eval-every", "1000"]
+    assert run.flags == ["--n", "6", "--k", "10240", "--eval-every", "1000"]  # 10,000 in whole rollouts of 2,048
     assert run.cadence == ["--checkpoint-every", "2048"]
     command = run.command(sys.executable, "/tmp/none")
     assert command[command.index("--checkpoint-every") + 1] == "2048"
@@ -69,15 +75,15 @@ def test_scale_scales_the_checkpoint_cadence():
     explicit = one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 0", 0.01)
     assert explicit.flags[2:4] == ["--checkpoint-every", "0"] and explicit.cadence == []
     assert one("ppo_baseline.py --total-timesteps=6000000 --eval-every 0", 0.01).flags == \
-        ["--total-timesteps=60000", "--eval-every", "0"]  # evaluation off stays off
+        ["--total-timesteps=59392", "--eval-every", "0"]  # evaluation off stays off
     # Fig. 3's LR cycle shrinks with the run it divides (6 cycles either way)
     assert one("ppo_baseline.py --total-timesteps 6000000 --cycle-steps 1000000 --eval-every 0", 0.01).flags == \
-        ["--total-timesteps", "60000", "--cycle-steps", "10000", "--eval-every", "0"]
+        ["--total-timesteps", "59392", "--cycle-steps", "10240", "--eval-every", "0"]
     # ... also where the template leaves the cycle at its default (it stayed 1M: a 60k-step run that never cycled);
     # without the cyclic schedule no --cycle-steps is added (the script refuses one there)
     for template in ("ppo_baseline.py --lr-schedule cyclic --eval-every 0",
                      "ppo_baseline.py --lr-schedule=cyclic --eval-every 0"):
-        assert sweep.flag_value(one(template, 0.01).flags, "--cycle-steps") == "10000", template
+        assert sweep.flag_value(one(template, 0.01).flags, "--cycle-steps") == "10240", template
     assert sweep.flag_value(one("ppo_baseline.py --eval-every 0", 0.01).flags, "--cycle-steps") is None
     assert run_script("sweep.py", "--command", "ppo_baseline.py --lr-schedule cyclic", "--envs", "Pendulum-v1",
                       "--scale", "0.01", "--dry-run").returncode == 0
@@ -95,34 +101,46 @@ def test_scale_keeps_budgets_equal_and_scales_the_defaults():
     # at scale 1 the command is the one written, small values included
     small = "cascade_sac.py --n 2 --k 300 --learning-starts 100 --checkpoint-every 100"
     assert one(small, 1).flags == small.split()[1:] and one(small, 1).cadence == []
-    # scaled down, the Cascade and its baseline keep the same total budget
-    for preset, labels in (("sac", ("cascade_sac", "sac")), ("ddpg", ("cascade_ddpg", "ddpg")),
-                           ("discrete", ("cascade_discrete", "ppo_discrete"))):
-        runs = {run.label: run for run in sweep.expand(sweep.Args(preset=[preset], scale=0.001))}
+    # scaled down, the Cascade and its baseline keep the same total budget, counted in the steps the scripts run:
+    # a PPO script rounds a budget down to whole rollouts (at 0.001 discrete Cascade's 10 x --k 1000 were 10 x 512
+    # steps against its baseline's 9,728), so the sweep gives whole rollouts
+    for preset, labels, scale in (("sac", ("cascade_sac", "sac"), 0.001), ("ddpg", ("cascade_ddpg", "ddpg"), 0.001),
+                                  ("discrete", ("cascade_discrete", "ppo_discrete"), 0.001),
+                                  ("standard", ("cascade", "ppo"), 0.01)):
+        runs = {run.label: run for run in sweep.expand(sweep.Args(preset=[preset], scale=scale))}
         totals = []
         for label in labels:
             flags = runs[label].flags
-            budget = sweep.flag_value(flags, "--k") or sweep.flag_value(flags, "--total-timesteps")
-            totals.append(int(budget) * int(sweep.flag_value(flags, "--n") or 1))
-        assert totals[0] == totals[1], (preset, totals)
+            budget = int(sweep.flag_value(flags, "--k") or sweep.flag_value(flags, "--total-timesteps"))
+            rollout = sweep.rollout_steps(runs[label].script, flags)
+            if rollout:
+                assert budget % rollout == 0, (preset, label, budget)
+            totals.append(budget * int(sweep.flag_value(flags, "--n") or 1))
+        assert abs(totals[0] / totals[1] - 1) < 0.05, (preset, totals)
     # a budget, warm-up and evaluation cadence left at the script's default are scaled too
     flags = one("cascade_sac.py", 0.01).flags
     assert [sweep.flag_value(flags, f) for f in ("--k", "--learning-starts", "--eval-every")] == ["5000", "50", "1000"]
-    assert sweep.flag_value(one("ppo_baseline_discrete.py", 0.01).flags, "--total-timesteps") == "100000"
-    # a PPO budget below one rollout is refused in one line, naming a scale that works for every template (the
+    assert sweep.flag_value(one("ppo_baseline_discrete.py", 0.01).flags, "--total-timesteps") == "99840"  # x 512
+    # a PPO budget below one rollout, or one that rounding to whole rollouts moves by more than 10% (a Cascade's
+    # budget against its baseline's), is refused in one line naming a scale that works for every template (the
     # largest need, rounded up: 0.002 was named, and refused in turn)
-    for preset, scale, works in (("standard", "0.001", "0.0021"), ("k-sweep", "0.0005", "0.0028")):
+    for preset, scale, problem, works in (("standard", "0.001", "less than one PPO rollout", "0.0021"),
+                                          ("k-sweep", "0.0005", "less than one PPO rollout", "0.0075"),
+                                          ("standard", "0.005", "--k 4096 (whole PPO rollouts) instead of 5000, 18% off",
+                                           "0.0056"),
+                                          ("discrete", "0.0007", "--k 512 (whole PPO rollouts) instead of 700, 27% off",
+                                           "0.00094")):
         error = error_line(run_script("sweep.py", "--preset", preset, "--scale", scale, "--dry-run"))
-        assert error.endswith(f"less than one PPO rollout; use --scale {works} or more"), error
+        assert problem in error and f"; use --scale {works} (the " in error, error
         assert run_script("sweep.py", "--preset", preset, "--scale", works, "--dry-run").returncode == 0
-    assert int(sweep.flag_value(one("cascade_ppo_discrete.py --k 1000000", 0.001).flags, "--k")) == 1000  # 512
+    assert int(sweep.flag_value(one("cascade_ppo_discrete.py --k 1000000", 0.001).flags, "--k")) == 1024
     # the floors never raise a cadence above the template's own
     assert sweep.flag_value(one("cascade_sac.py --eval-every 500 --checkpoint-every 700", 0.5).flags,
                             "--eval-every") == "500"
     assert one("cascade_sac.py --eval-every 500 --checkpoint-every 700", 0.5).flags[3] == "700"
     # tyro's other spelling (--total_timesteps) is the same flag: scaled, not overridden by a scaled default
     flags = one("ppo_baseline.py --total_timesteps 2000000", 0.01).flags
-    assert flags[:2] == ["--total_timesteps", "20000"] and sweep.flag_value(flags, "--total-timesteps") == "20000"
+    assert flags[:2] == ["--total_timesteps", "20480"] and sweep.flag_value(flags, "--total-timesteps") == "20480"
     assert "--total-timesteps" not in flags
     # --exp-name=NAME is the label too (it took the next flag as the label)
     assert one("cascade_sac.py --exp-name=mine --k 1000", 1).label == "mine"
