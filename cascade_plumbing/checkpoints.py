@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import glob
+import io
 import os
 import shutil
 import sys
@@ -42,10 +43,13 @@ def save_checkpoint(path: str, payload: dict) -> None:
 
     saving(path, payload)  # the run's final checkpoint: a stop from now on lets the run finish
     tmp = f"{path}.tmp"
-    with write_failures(path, tmp), open(tmp, "wb") as f:
-        torch.save(payload, f)
-        f.flush()
-        os.fsync(f.fileno())
+    with write_failures(path, tmp):
+        serialized = io.BytesIO()  # (torch.save into a file reports a full disk as a RuntimeError without its errno)
+        torch.save(payload, serialized)
+        with open(tmp, "wb") as f:
+            f.write(serialized.getbuffer())
+            f.flush()
+            os.fsync(f.fileno())
     os.replace(tmp, path)
     fsync_dir(os.path.dirname(os.path.abspath(path)))
 

@@ -31,6 +31,17 @@ from .envs import end_env_workers
 from .errors import check_ranges, fail, parse_command_line
 from .tracking import check_wandb, finish_wandb
 
+RESUMING: list[str] = []  # the run folder the command line's --resume continues in (run_main)
+
+
+def check_run_dir_writable(run_dir: str) -> None:
+    """A resumed run writes in its own folder: probed there (nothing left behind), one line if it cannot."""
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=run_dir))
+    except OSError as exc:
+        fail(f"cannot write in the run folder {run_dir} ({exc.strerror or exc}): a resumed run goes on in its own "
+             "folder; make it writable, or copy the run folder to a writable place and resume the copy there")
+
 
 def check_track_dir(track_dir: str) -> None:
     """Run folders can be created under `track_dir` (probed in its nearest existing ancestor, nothing left behind)."""
@@ -295,6 +306,17 @@ def no_memory(exc: BaseException, run_dir: str | None, args: Any) -> None:
     stop_short_of("out of memory", f" ({what})", run_dir, "free some memory", f"start again with {advice}")
 
 
+def refused_write(exc: BaseException) -> OSError | None:
+    """The OSError of a file the run could not write for want of permission, a read-only filesystem or a disk
+    error (in `exc` or an exception it was raised from), or None."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.filename and exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM,
+                                                                       errno.EIO):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def disk_full(exc: BaseException) -> bool:
     """Whether `exc` (or an exception it was raised from) is a full disk (ENOSPC, or EDQUOT: a full quota)."""
     while exc is not None:
@@ -432,7 +454,10 @@ def check_common_settings(args: Any) -> None:
     check_threads(args.torch_threads)
     if getattr(args, "checkpoint_every", 0) < 0:
         fail(f"--checkpoint-every must be >= 0 (0: only the checkpoints a run always writes; got {args.checkpoint_every})")
-    check_track_dir(args.track_dir)
+    if RESUMING:  # its folder exists: whether the run can write there, not whether new folders can be made beside it
+        check_run_dir_writable(RESUMING[0])
+    else:
+        check_track_dir(args.track_dir)
     check_exp_name(args.exp_name)
     if args.track:
         check_wandb()
@@ -444,7 +469,7 @@ EVALUATE_FIELDS = {"evaluate", "eval_episodes", "seed", "capture_video", "torch_
 
 
 def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], Any],
-                  load_checkpoint: Callable[[str], dict]) -> None:
+                  load_checkpoint: Callable[..., dict]) -> None:
     """--evaluate: the saved model on the env it was trained on. Flags it would ignore are refused in one line; a
     stop (Ctrl-C, SIGTERM) ends in one line too (exit 130 / 143): nothing of a run is at stake."""
     if args.resume:
@@ -460,7 +485,7 @@ def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], An
              f"settings it was trained with; leave it out (with --evaluate only "
              f"{', '.join('--' + name.replace('_', '-') for name in applying)} apply)")
     check_seed(args.seed)
-    refuse_another_scripts_checkpoint(load_checkpoint(args.evaluate), type(args), "evaluate")
+    refuse_another_scripts_checkpoint(load_checkpoint(args.evaluate, reader_flag="--evaluate"), type(args), "evaluate")
     forget_stops()
     signal.signal(signal.SIGTERM, stop_signal)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
@@ -490,6 +515,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         evaluate_only(args, given, evaluate_saved, load_checkpoint)
         return
     checkpoint = None
+    RESUMING.clear()
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
         refuse_another_scripts_checkpoint(checkpoint, args_type, "resume")
@@ -516,6 +542,8 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         sys.excepthook = quiet_resource_sharer(sys.excepthook)
     RUN_DIR.clear()
     SAVED_AT_STOP.clear()
+    if checkpoint is not None:
+        RESUMING.append(os.path.dirname(checkpoint["path"]))
     try:
         train(args, checkpoint)
     except BaseException as exc:
@@ -533,7 +561,14 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         if out_of_memory(exc):  # e.g. a --hidden-size that does not fit: one line, not torch's traceback
             end_env_workers()
             no_memory(exc, this_run_dir(checkpoint), args)
+        refused = None if isinstance(exc, SystemExit) else refused_write(exc)
+        if refused is not None:  # a folder made read-only, a file of the run whose permissions changed, a disk error
+            end_env_workers()
+            stop_short_of(f"cannot write {refused.filename} ({refused.strerror})", "", this_run_dir(checkpoint),
+                          "make it writable", "make it writable and start the run again")
         raise
+    finally:
+        RESUMING.clear()
     # The work is done and saved: a stop from here on must not turn a finished run into a failed one (at
     # interpreter exit Python resets its own handlers to the default, which would die by the signal silently).
     signal.signal(signal.SIGTERM, signal.SIG_IGN)

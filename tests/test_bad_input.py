@@ -188,7 +188,7 @@ def test_a_stopped_evaluation_is_one_line(signum, capsys):
         # ignored SIGINT, which the script rightly leaves ignored)
         signal.signal(signal.SIGINT, signal.default_int_handler)
         with pytest.raises(SystemExit) as stop:
-            runs.evaluate_only(args, set(), evaluation_stopped, lambda path: {"path": path})
+            runs.evaluate_only(args, set(), evaluation_stopped, lambda path, reader_flag="": {"path": path})
     finally:
         for sig, handler in handlers.items():
             signal.signal(sig, handler)

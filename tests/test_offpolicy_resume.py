@@ -537,3 +537,82 @@ def test_a_resume_may_repeat_the_relative_track_dir_it_was_started_with(tmp_path
     assert cd.load_checkpoint(run_dir)["global_step"] == 600
     code, _, error = cli_in_process(capsys, "cascade_ddpg.py", "--resume", run_dir, "--track-dir", "r2")
     assert code == 1 and "--track-dir r2 differs from the checkpoint's" in error, error
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A real 4 MB tmpfs (room for one checkpoint of a small SAC run, not two), where the machine lets us mount one;
+    unmounted at the end, with whatever a test bind-mounted inside it."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)], capture_output=True,
+                             text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({mounted.stderr.strip() or 'mount failed'}); needs root")
+    yield disk
+    subprocess.run(["umount", "-R", str(disk)], capture_output=True)
+
+
+def stopped_sac_run(track_dir, monkeypatch) -> str:
+    """A small SAC run killed after its checkpoint at step 200 (in-process, as a SIGKILL would stop it)."""
+    args = cs.Args(env_id="Pendulum-v1", n=2, k=1000, learning_starts=100, batch_size=32, eval_every=0,
+                   checkpoint_every=200, quiet=True, track_dir=str(track_dir))
+    train_killed_at(monkeypatch, cs, 250, args)
+    close_killed_writers()
+    run_dir = only_run_dir(track_dir)
+    runs.unlock_run_dir(run_dir)  # (what a killed process's exit does)
+    return run_dir
+
+
+def error_line_of(*argv) -> str:
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "cascade_sac.py"), *map(str, argv)],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 1 and len(lines) == 1 and lines[0].startswith("error: "), proc.stderr[-2000:]
+    return lines[0]
+
+
+def test_a_full_disk_at_a_checkpoint_is_named_as_one(small_disk):
+    """A new-user pass: a SAC checkpoint that did not fit said "cannot write ...checkpoint.pt.tmp (RuntimeError:
+    [enforce fail at inline_container.cc:672] . unexpected pos ...); ... fix that": torch.save into a file loses
+    the full disk's errno, and after the partial file was removed more than the 1 MB the fallback test wanted was
+    free. The checkpoint is serialized first and written whole, so the disk's own error names it."""
+    line = error_line_of("--env-id", "Pendulum-v1", "--n", "2", "--k", "1000", "--learning-starts", "300",
+                         "--batch-size", "32", "--eval-every", "0", "--checkpoint-every", "200", "--quiet",
+                         "--track-dir", small_disk)
+    run_dir = only_run_dir(small_disk)
+    assert line == (f"error: no space left on {run_dir}; the last checkpoint {run_dir}/checkpoint.pt is intact; free "
+                    f"some space and continue with: python cascade_sac.py --resume {run_dir}"), line
+    assert not [f for f in os.listdir(run_dir) if f.endswith(".tmp")]
+    assert cs.load_checkpoint(run_dir)["global_step"] >= 200  # the last that fitted
+
+
+@pytest.mark.parametrize("read_only", ["run folder", "replay"])
+def test_a_read_only_run_folder_is_one_line_on_resume(read_only, small_disk, monkeypatch):
+    """A new-user pass: a run folder made read-only (a results share, a quota), then --resume, ended in a traceback
+    from run.lock; with only replay/ read-only, the run trained to its next checkpoint and ended in a traceback
+    there. Now one line each, with advice that applies to a resume (the run folder, not --track-dir)."""
+    subprocess.run(["mount", "-o", "remount,size=64m", str(small_disk)], check=True)
+    run_dir = stopped_sac_run(small_disk, monkeypatch)
+    target = small_disk if read_only == "run folder" else os.path.join(run_dir, "replay")
+    if read_only == "replay":
+        subprocess.run(["mount", "--bind", target, target], check=True)
+    remounted = subprocess.run(["mount", "-o", "remount,bind,ro" if read_only == "replay" else "remount,ro",
+                                str(target)], capture_output=True, text=True)
+    if remounted.returncode != 0:
+        pytest.skip(f"cannot remount read-only here ({remounted.stderr.strip()})")
+    line = error_line_of("--resume", run_dir)
+    if read_only == "run folder":
+        assert line == (f"error: cannot write in the run folder {run_dir} (Read-only file system): a resumed run goes "
+                        "on in its own folder; make it writable, or copy the run folder to a writable place and "
+                        "resume the copy there"), line
+    else:
+        assert line == (f"error: cannot write {run_dir}/replay/rows_000000.f32 (Read-only file system); the last "
+                        f"checkpoint {run_dir}/checkpoint.pt is intact; make it writable and continue with: python "
+                        f"cascade_sac.py --resume {run_dir}"), line
+    subprocess.run(["mount", "-o", "remount,rw" if read_only == "run folder" else "remount,bind,rw", str(target)],
+                   check=True)
+    assert cs.load_checkpoint(run_dir)["global_step"] == 200  # untouched, and the advice works once writable
+    resumed = subprocess.run([sys.executable, os.path.join(ROOT, "cascade_sac.py"), "--resume", run_dir],
+                             capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
