@@ -91,11 +91,13 @@ class Progress:
         self.total, self.quiet, self.interval, self.file, self.line = total_steps, quiet, interval, file, line
         self.tty = sys.stdout.isatty()
         self.last_print = self.last_write = 0.0
+        self.last_sps, self.last_size = 0.0, 0
         self.last_eval: float | None = None
         self.note = ""  # e.g. that a fast path was switched off
 
     def update(self, step: int, sps: float, size: int, force: bool = False) -> None:
         now = time.time()
+        self.last_sps, self.last_size = sps, size
         print_due = self.line and not self.quiet and (force or now - self.last_print >= (0.5 if self.tty else
                                                                                           self.interval))
         write_due = self.file is not None and (force or now - self.last_write >= self.interval)
@@ -116,6 +118,15 @@ class Progress:
                 os.replace(f"{self.file}.new", self.file)
             except OSError:
                 pass
+
+    def final(self, step: int) -> None:
+        """At the run's end: its last line in the file (the periodic write may be up to `interval` old, which left a
+        finished run at 55%); nothing printed."""
+        line, self.line = self.line, False
+        try:
+            self.update(step, self.last_sps, self.last_size, force=True)
+        finally:
+            self.line = line
 
     def message(self, text: str) -> None:
         """A normal line that does not garble the progress line."""
