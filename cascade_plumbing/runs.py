@@ -151,7 +151,13 @@ def refuse_idle_flags(args: Any, given: set[str]) -> None:
     if not args.track:
         rules += [(name, "applies with --track only") for name in ("wandb_project_name", "wandb_entity", "wandb_group")]
     if getattr(args, "n", 2) == 1 and not getattr(args, "start_full", False):
-        rules += [(name, "has no effect with --n 1 (no base net is added)") for name in ("keep_buffer", "reset_critic")]
+        rules += [(name, "has no effect with --n 1 (no base net is added)")
+                  for name in ("keep_buffer", "reset_critic", "fallback_init", "freeze_previous")
+                  if hasattr(args, name)]
+    if getattr(args, "eval_every", None) == 0 and hasattr(args, "learning_starts"):  # (SAC and DDPG evaluate the
+        # nets alone only at their periodic evaluation; the PPO scripts at each iteration's end, whatever --eval-every)
+        rules += [(name, "has no effect with --eval-every 0 (training evaluates nothing)")
+                  for name in ("eval_members", "eval_deterministic") if hasattr(args, name)]
     for name, why in rules:
         if name in given:
             fail(f"--{name.replace('_', '-')} {why}; leave it out")

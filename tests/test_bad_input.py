@@ -236,6 +236,11 @@ IDLE_FLAGS = [  # (script, flags, the line): flags a training run cannot act on,
     ("ppo_baseline", ["--wandb-group", "g"], "--wandb-group applies with --track only"),
     ("cascade_ddpg", ["--n", "1", "--keep-buffer"], "--keep-buffer has no effect with --n 1"),
     ("cascade_sac", ["--n", "1", "--reset-critic"], "--reset-critic has no effect with --n 1"),
+    # (a new-user pass: each ran with exit 0)
+    ("cascade_sac", ["--n", "1", "--fallback-init", "0.9"], "--fallback-init has no effect with --n 1"),
+    ("cascade_ppo_discrete", ["--n", "1", "--freeze-previous"], "--freeze-previous has no effect with --n 1"),
+    ("cascade_ddpg", ["--eval-every", "0", "--eval-members"], "--eval-members has no effect with --eval-every 0"),
+    ("cascade_sac", ["--eval-every", "0", "--eval-deterministic"], "--eval-deterministic has no effect with --eval-"),
 ]
 
 

@@ -635,6 +635,9 @@ BAD_INPUT = [
     # no multiple of the frequency among an iteration's update steps (101..599): the actor never trained, exit 0 (audit)
     (dict(k=600, learning_starts=100, policy_frequency=600), "--policy-frequency 600: no update step of an iteration "
                                                              "(101 to 599) is a multiple of it"),
+    # a buffer emptied every 600 steps never holds 2,000 rows: every batch repeated rows, exit 0 (a new-user pass)
+    (dict(env_id="Pendulum-v1", n=1, k=600, learning_starts=300, batch_size=2000), "--batch-size 2000 exceeds the "
+                                                                                   "600 rows the replay buffer"),
 ]
 
 
