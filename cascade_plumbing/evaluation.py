@@ -9,6 +9,7 @@ import contextlib
 import multiprocessing
 import os
 import signal
+import tempfile
 import traceback
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -174,6 +175,15 @@ def open_saved_model(args: Any, load_checkpoint: Callable[..., dict]) -> dict:
         fail(f"--eval-episodes must be at least 1 (got {args.eval_episodes})")
     checkpoint = load_checkpoint(args.evaluate, reader_flag="--evaluate")  # (a corrupt file's advice: --evaluate)
     if args.capture_video:
+        folder = os.path.dirname(os.path.abspath(checkpoint["path"]))
+        try:  # the video goes beside the checkpoint: a read-only results share ended in a BrokenPipeError traceback
+            probe, probe_path = tempfile.mkstemp(dir=folder, suffix=".mp4")
+            os.close(probe)
+            os.remove(probe_path)
+        except OSError as exc:
+            fail(f"--capture-video writes its video beside the checkpoint, and {folder} is not writable "
+                 f"({exc.strerror or exc}); copy the run folder somewhere writable and evaluate the copy, or leave out "
+                 "--capture-video")
         make_render_env(checkpoint["args"]["env_id"]).close()
     set_threads(args.torch_threads)
     return checkpoint

@@ -616,3 +616,17 @@ def test_a_read_only_run_folder_is_one_line_on_resume(read_only, small_disk, mon
     resumed = subprocess.run([sys.executable, os.path.join(ROOT, "cascade_sac.py"), "--resume", run_dir],
                              capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
+
+
+def test_evaluate_capture_video_of_a_read_only_run_folder_is_one_line(small_disk, monkeypatch):
+    """A new-user pass: `--evaluate <a read-only results folder> --capture-video` ran its episode, then ended in a
+    BrokenPipeError traceback from ffmpeg. The folder the video goes to is probed first, one line."""
+    subprocess.run(["mount", "-o", "remount,size=64m", str(small_disk)], check=True)
+    run_dir = stopped_sac_run(small_disk, monkeypatch)
+    remounted = subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], capture_output=True, text=True)
+    if remounted.returncode != 0:
+        pytest.skip(f"cannot remount read-only here ({remounted.stderr.strip()})")
+    line = error_line_of("--evaluate", run_dir, "--capture-video")
+    assert line == (f"error: --capture-video writes its video beside the checkpoint, and {run_dir} is not writable "
+                    "(Read-only file system); copy the run folder somewhere writable and evaluate the copy, or leave "
+                    "out --capture-video"), line
