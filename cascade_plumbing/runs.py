@@ -491,8 +491,8 @@ def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], An
              f"settings it was trained with; leave it out (with --evaluate only "
              f"{', '.join('--' + name.replace('_', '-') for name in applying)} apply)")
     check_seed(args.seed)
-    refuse_another_scripts_checkpoint(load_checkpoint(args.evaluate, reader_flag="--evaluate"), type(args), "evaluate")
     forget_stops()
+    refuse_another_scripts_checkpoint(load_checkpoint(args.evaluate, reader_flag="--evaluate"), type(args), "evaluate")
     signal.signal(signal.SIGTERM, stop_signal)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, stop_signal)

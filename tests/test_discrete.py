@@ -231,7 +231,7 @@ def test_cascade_discretized_hopper_run_writes_expected_scalars(tmp_path, capsys
     last = {tag: scalars[tag][-1][1] for tag in scalars if tag.startswith("cascade/contribution/")}
     assert abs(sum(last.values()) - 1.0) < 1e-4
     assert abs(scalars["cascade/fallback_product"][-1][1] - last["cascade/contribution/net_1"]) < 1e-6
-    assert_progress_file_says(only_run_dir(tmp_path), nets=1, first_eval=scalars["eval/episodic_return"][0][1])
+    assert_progress_file_says(only_run_dir(tmp_path), nets=3, last_eval=scalars["eval/episodic_return"][-1][1])
 
 
 def test_baseline_discretized_hopper_run_writes_expected_scalars(tmp_path, capsys):
@@ -249,15 +249,14 @@ def test_baseline_discretized_hopper_run_writes_expected_scalars(tmp_path, capsy
     # CleanRL ppo.py: the LR anneals once over the whole run (4 updates of 512 steps)
     np.testing.assert_allclose([v for _, v in scalars["charts/learning_rate"]],
                                [2.5e-4 * (1 - u / 4) for u in range(4)], rtol=1e-5)
-    assert_progress_file_says(only_run_dir(tmp_path), nets=1, first_eval=scalars["eval/episodic_return"][0][1])
+    assert_progress_file_says(only_run_dir(tmp_path), nets=1, last_eval=scalars["eval/episodic_return"][-1][1])
 
 
-def assert_progress_file_says(run_dir, nets: int, first_eval: float):
-    """The progress file (what sweep.py shows of a run), written at the first update and then every 30 s: the
-    policy's base nets and the latest evaluation (the one at step 0). It said "0 net(s) | eval -" for every
-    discrete run."""
+def assert_progress_file_says(run_dir, nets: int, last_eval: float):
+    """The progress file (what sweep.py shows of a run), its last line written at the run's end: the policy's base
+    nets and the latest evaluation. It said "0 net(s) | eval -" for every discrete run."""
     line = open(os.path.join(run_dir, "progress.txt")).read()
-    assert f"| {nets} net(s) | eval {first_eval:.1f} |" in line, line
+    assert f"| {nets} net(s) | eval {last_eval:.1f} |" in line, line
 
 
 BAD_INPUT = [

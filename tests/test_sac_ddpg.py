@@ -663,7 +663,7 @@ def test_update_frequencies_are_refused_only_where_no_update_step_is_a_multiple(
     mod = SCRIPTS[algo]
     for restart, frequency, refused in [(True, 500, False), (True, 599, False), (True, 600, True),
                                         (False, 100, False), (True, 100, True)]:
-        args = mod.Args(env_id="Pendulum-v1", k=600 if frequency > 100 else 101, learning_starts=100,
+        args = mod.Args(env_id="Pendulum-v1", k=600 if frequency > 100 else 101, learning_starts=100, batch_size=32,
                         policy_frequency=frequency, restart_on_new_net=restart, track_dir=str(tmp_path / "runs"))
         if refused:
             with pytest.raises(SystemExit, match="is a multiple of it|must exceed --learning-starts 100 \\+ 1"):

@@ -140,7 +140,7 @@ def test_a_stopped_sweep_says_one_line(tmp_path, signum):
     130 for SIGTERM too. Now: one line (the stopped runs, where each continues), exit 128 + the signal.
     SIGINT stops the run after its first checkpoint (it resumes there), SIGTERM before it (it starts over)."""
     long = f"{SWEEP_LONG} --checkpoint-every 2048" if signum == signal.SIGINT else f"{SWEEP_LONG} --checkpoint-every 0 {INLINE}"
-    args = ["--command", long, f"{long} --fallback-init 0.3", "--envs", "InvertedPendulum-v4",
+    args = ["--command", long, f"{long} --gamma 0.98", "--envs", "InvertedPendulum-v4",
             "--workers", "1", "--status-every", "3600", "--sweep-dir", tmp_path]
     proc = start("sweep.py", *args)
     wanted = "checkpoint.pt" if signum == signal.SIGINT else "events.out.tfevents.*"

@@ -295,7 +295,7 @@ def test_rerun_with_other_budget_starts_a_new_run(tmp_path):
 
 
 def test_local_sweep_reports_failure_and_skips_finished_runs(tmp_path):
-    args = ["--command", TINY + " --exp-name good_a", TINY + " --fallback-init 0.9 --exp-name good_b",
+    args = ["--command", TINY + " --exp-name good_a", TINY + " --gamma 0.98 --exp-name good_b",
             TINY + " --learning-rate 1e30 --exp-name broken",  # (fails as it trains: past the sweep's checks)
             "--envs", "Hopper-v4", "--seeds", "1", "--workers", "2", "--sweep-dir", tmp_path]
     first = run_script("sweep.py", *args)
