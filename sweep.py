@@ -35,6 +35,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import warnings
@@ -795,6 +796,11 @@ def sweep() -> None:
         existing = os.path.dirname(existing)
     if not os.path.isdir(existing):
         fail(f"--sweep-dir {args.sweep_dir}: {existing} is a file, not a folder; pass a folder for the sweep")
+    try:  # (else each run's own check named a --track-dir the user never gave)
+        os.rmdir(tempfile.mkdtemp(dir=existing))
+    except OSError as exc:
+        fail(f"--sweep-dir {sweep_dir} cannot be made or written ({exc.strerror or exc} in {existing}); pass a "
+             "writable folder for the sweep")
     if args.backend == "local" and shutil.which(args.python) is None:  # (on Ray it must exist on the nodes)
         fail(f"--python {args.python} is not an executable (a path, or a name on PATH); pass the interpreter the runs "
              "use (default: this one)")

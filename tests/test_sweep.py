@@ -337,6 +337,9 @@ def test_bad_input(tmp_path):
         assert proc.returncode != 0 and message in proc.stderr, (extra, proc.stderr)
     proc = run_script("sweep.py", "--command", TINY, "--sweep-dir", "", "--dry-run")
     assert proc.returncode != 0 and "--sweep-dir is empty" in proc.stderr, proc.stderr
+    # a folder that cannot be made: one line about --sweep-dir (it named each run's --track-dir, never given)
+    line = error_line(run_script("sweep.py", "--command", TINY, "--sweep-dir", "/proc/x", "--dry-run"))
+    assert line.startswith("error: --sweep-dir /proc/x cannot be made or written"), line
     with socket.socket() as s:  # a port with nothing listening
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
