@@ -390,7 +390,7 @@ def train(args: Args, checkpoint: dict | None = None,
     """Runs Cascade-DDPG (from scratch, or continuing a `checkpoint` exactly); returns the final actor
     and target actor, critic and target, buffer and run folder. `on_iteration_start` sees each iteration's state
     (used by the tests)."""
-    validate(args)
+    validate(args, new_run=checkpoint is None)
     set_threads(args.torch_threads)
     seed_everything(args.seed, args.torch_deterministic)
     device = run_device(args.cuda)
@@ -571,7 +571,7 @@ def make_fast_paths(args: Args, device: torch.device, run: OffPolicyRun | None =
 # ----------------------------------------------------------------------------------------------
 # Wiring to cascade_plumbing: input checks, checkpoints, --evaluate, the command line
 # ----------------------------------------------------------------------------------------------
-def validate(args: Args) -> None:
+def validate(args: Args, new_run: bool = True) -> None:
     """Reject bad input with one clear line before anything is created."""
     check_common_settings(args)
     if not args.learning_rate >= 0:
@@ -587,7 +587,7 @@ def validate(args: Args) -> None:
     if args.policy_frequency < 1:
         fail("--policy-frequency must be at least 1")
     check_replay_settings(args, bounds_needed_because="the actor's tanh outputs are rescaled to finite bounds",
-                          frequencies={"--policy-frequency": "the actor's and the targets' update"})
+                          frequencies={"--policy-frequency": "the actor's and the targets' update"}, new_run=new_run)
 
 
 # /2: the paper's-code defaults (nets, LR, new-net restart, clipping); /3: checkpoints inside an iteration, with the

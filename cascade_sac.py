@@ -616,7 +616,7 @@ def validate(args: Args, new_run: bool = True) -> None:
         fail(f"--alpha {args.alpha} has no effect with --autotune (alpha is learned, starting at 1.0); drop one of them")
     check_replay_settings(args, bounds_needed_because="SAC squashes actions into finite bounds",
                           frequencies={"--policy-frequency": "the actor's update",
-                                       "--target-network-frequency": "the target critics' update"})
+                                       "--target-network-frequency": "the target critics' update"}, new_run=new_run)
 
 
 # /2: the paper's-code defaults (alpha, log-std, new-net restart, clipping); /3: checkpoints inside an iteration,

@@ -307,10 +307,10 @@ def rollout_steps(script: str, flags: list[str]) -> int | None:
 
 
 def scale_template(script: str, flags: list[str], scale: float,
-                   template: str) -> tuple[list[str], list[str], float, tuple[float, str, int, int]]:
+                   template: str) -> tuple[list[str], list[str], float, tuple[float, float, str, int, int]]:
     """A template's flags at `scale`, the checkpoint cadence to add, the smallest scale its PPO budgets allow, and
-    the PPO budget that rounding to whole rollouts moves most: (flags, cadence, smallest scale, (relative change,
-    flag, steps, exact scaled steps)).
+    the PPO budget that rounding to whole rollouts moves most: (flags, cadence, smallest scale, (|relative change|,
+    relative change, flag, steps, exact scaled steps)).
 
     At scale 1 the flags are the command as written. Otherwise every step count is multiplied by `scale`, where the
     template gives it and where it leaves the script's default (then added, scaled): the budgets (SCALED_BUDGETS),
@@ -321,7 +321,7 @@ def scale_template(script: str, flags: list[str], scale: float,
     The caller refuses a scale below the smallest one (a PPO budget below one rollout: raising it would break the
     equal budgets a figure compares), and one whose rounding moves a budget by more than MAX_ROUNDING."""
     if scale == 1:
-        return list(flags), [], 0.0, (0.0, "", 0, 0)
+        return list(flags), [], 0.0, (0.0, 0.0, "", 0, 0)
     out = list(flags)
     field_name, flag, switch, on = CYCLE_DEFAULT
     defaults = [*SCALED_DEFAULTS, *([(field_name, flag)] if flag_value(out, switch) == on else [])]
@@ -330,7 +330,7 @@ def scale_template(script: str, flags: list[str], scale: float,
         if isinstance(default, int) and flag_value(out, flag) is None:
             out += [flag, str(default)]
     rollout = rollout_steps(script, out)
-    smallest, rounding = 0.0, (0.0, "", 0, 0)
+    smallest, rounding = 0.0, (0.0, 0.0, "", 0, 0)
 
     def scaled(name: str, value: str) -> str:
         nonlocal smallest, rounding
@@ -348,7 +348,8 @@ def scale_template(script: str, flags: list[str], scale: float,
         if rollout:
             smallest = max(smallest, rollout / steps)
             new = max(round(steps * scale / rollout), 1) * rollout
-            rounding = max(rounding, (abs(new / (steps * scale) - 1), name, new, int(round(steps * scale))))
+            change = new / (steps * scale) - 1
+            rounding = max(rounding, (abs(change), change, name, new, int(round(steps * scale))))
         return str(new)
 
     for i, flag in enumerate(out):
@@ -378,19 +379,29 @@ def scale_problem(templates: list[tuple[str, str, list[str]]], scale: float) -> 
     smallest, template = max((result[2], template) for result, template in scaled)
     if smallest > scale:
         return f"makes a budget of '{template}' less than one PPO rollout", smallest
-    (change, flag, steps, exact), template = max((result[3], template) for result, template in scaled)
+    (change, _, flag, steps, exact), template = max((result[3], template) for result, template in scaled)
     if change > MAX_ROUNDING:
         return (f"gives '{template}' {flag} {steps} (whole PPO rollouts) instead of {exact}, {100 * change:.0f}% "
                 "off, which would skew the budgets a figure compares"), smallest
+    # each within 10%, but one rounded up and another down can still be further apart than that
+    changes = sorted((result[3][1], result[3][2:4], template) for result, template in scaled)
+    (low, (low_flag, low_steps), low_template), (high, (high_flag, high_steps), high_template) = changes[0], changes[-1]
+    if high - low > MAX_ROUNDING:
+        return (f"gives '{high_template}' {high_flag} {high_steps} and '{low_template}' "
+                f"{low_flag or 'its budgets'} {low_steps or 'unrounded'} ({100 * high:+.0f}% and {100 * low:+.0f}% of "
+                "their scaled values, in whole PPO rollouts), which would skew the budgets a figure compares"), smallest
     return "", smallest
 
 
 def a_scale_that_works(templates: list[tuple[str, str, list[str]]], smallest: float) -> float:
-    """The first scale of two significant figures from `smallest` up at which `scale_problem` finds nothing."""
+    """The first scale of two significant figures from `smallest` up at which `scale_problem` finds nothing (the
+    rounding's share shrinks as the budgets grow: found within a few hundred steps for any real template)."""
     scale = smallest_scale_that_works(smallest)
-    while scale < 1 and scale_problem(templates, scale)[0]:
-        scale = round(scale + 10 ** (math.floor(math.log10(scale)) - 1), 12)
-    return min(scale, 1.0)
+    for _ in range(10_000):
+        if not scale_problem(templates, scale)[0]:
+            break
+        scale = float(f"{scale + 10 ** (math.floor(math.log10(scale)) - 1):.2g}")
+    return scale
 
 
 def smallest_scale_that_works(needed: float) -> float:
@@ -453,10 +464,10 @@ def expand(args: Args) -> list[Run]:
         scaled.append((label, script, template_flags, cadence))
     problem, smallest = scale_problem(templates, args.scale)
     if problem:
-        works = a_scale_that_works(templates, max(smallest, min(args.scale, 1.0)))
+        works = a_scale_that_works(templates, max(smallest, args.scale))
         which = "the smallest that works" if smallest > args.scale else "the next one up that works"
         fail(f"--scale {args.scale:g} {problem}; use --scale {works:.2g} ({which}: every PPO budget at least one "
-             "rollout and within 10% of its scaled value once rounded to whole rollouts)")
+             "rollout, and in whole rollouts within 10% of its scaled value and of the others')")
     runs, seen = [], set()
     # env by env, seed by seed: the runs one figure panel compares finish together
     for env_id in args.envs:
@@ -796,7 +807,7 @@ def sweep() -> None:
         existing = os.path.dirname(existing)
     if not os.path.isdir(existing):
         fail(f"--sweep-dir {args.sweep_dir}: {existing} is a file, not a folder; pass a folder for the sweep")
-    try:  # (else each run's own check named a --track-dir the user never gave)
+    try:  # (else each run's own check named a --track-dir the user never gave; as that check, also with --dry-run)
         os.rmdir(tempfile.mkdtemp(dir=existing))
     except OSError as exc:
         fail(f"--sweep-dir {sweep_dir} cannot be made or written ({exc.strerror or exc} in {existing}); pass a "

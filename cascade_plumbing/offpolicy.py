@@ -68,7 +68,8 @@ def step_with_gradients(optimizer: torch.optim.Optimizer, params: list[torch.Ten
         param.grad = None
 
 
-def check_replay_settings(args: Any, bounds_needed_because: str, frequencies: dict[str, str]) -> None:
+def check_replay_settings(args: Any, bounds_needed_because: str, frequencies: dict[str, str],
+                          new_run: bool = True) -> None:
     """The settings both off-policy scripts have, checked after the script's own: the clipping, the warm-up and the
     update `frequencies` (flag -> what it paces), the replay buffer (and its memory), the evaluation, the env (a
     bounded Box action space, flat observations). One line each, before anything is created (`RunRecord` checks the
@@ -91,11 +92,11 @@ def check_replay_settings(args: Any, bounds_needed_because: str, frequencies: di
                  f"so {paced} would never run; pass one up to {args.k - first:,} (each has a multiple there)")
     if args.buffer_size < max(args.batch_size, args.learning_starts + 1):
         fail(f"--buffer-size {args.buffer_size} must hold at least --batch-size and --learning-starts + 1 rows")
-    if args.batch_size > buffer_capacity(args.buffer_size, args.n, args.k, args.keep_buffer):
-        fail(f"--batch-size {args.batch_size} exceeds the {buffer_capacity(args.buffer_size, args.n, args.k, args.keep_buffer):,} "
-             "rows the replay buffer can ever hold (at most --k steps between its emptyings at each new net"
-             f"{'' if args.keep_buffer else ', unless --keep-buffer'}), so every batch would repeat rows; pass a "
-             "smaller --batch-size or a larger --k")
+    capacity = buffer_capacity(args.buffer_size, args.n, args.k, args.keep_buffer)
+    if new_run and args.batch_size > capacity:  # (a run started before this check resumes)
+        held = "n x k steps of the run" if args.keep_buffer else "the k steps between its emptyings at each new net"
+        fail(f"--batch-size {args.batch_size} exceeds the {capacity:,} rows the replay buffer can ever hold ({held}), "
+             "so every batch would repeat rows; pass a smaller --batch-size or a larger --k")
     if not 0.0 < args.tau <= 1.0:
         fail(f"--tau must lie in (0, 1] (got {args.tau})")
     if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):

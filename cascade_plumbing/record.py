@@ -181,7 +181,7 @@ class RunRecord:
         self.last_checkpoint_step = global_step
 
     def close(self, global_step: int) -> None:
-        self.progress.final(global_step)
+        self.progress.final(global_step, self.sps(global_step))
         self.writer.close()
         unlock_run_dir(self.run_dir)
         if self.args.track:

@@ -164,8 +164,12 @@ def refuse_idle_flags(args: Any, given: set[str]) -> None:
 
 
 def script_file(args_type: type) -> str:
-    """The file name of the script that defines `args_type`: cascade_sac.py, or a copy's own (my_idea.py)."""
-    return os.path.basename(inspect.getfile(args_type))
+    """The file name of the script that defines `args_type`: cascade_sac.py, or a copy's own (my_idea.py); "" where
+    there is none (a class defined in a notebook's cell or `python -c`: not checked on resume)."""
+    try:
+        return os.path.basename(inspect.getfile(args_type))
+    except (TypeError, OSError):
+        return ""
 
 
 def refuse_another_scripts_checkpoint(checkpoint: dict, args_type: type, flag: str) -> None:
@@ -314,12 +318,12 @@ def no_memory(exc: BaseException, run_dir: str | None, args: Any) -> None:
 
 def refused_write(exc: BaseException) -> OSError | None:
     """The OSError of a file the run could not write for want of permission, a read-only filesystem or a disk
-    error (in `exc` or an exception it was raised from), or None."""
+    error (`exc`, or the one it was raised from; not one it was merely raised while handling), or None."""
     while exc is not None:
         if isinstance(exc, OSError) and exc.filename and exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM,
                                                                        errno.EIO):
             return exc
-        exc = exc.__cause__ or exc.__context__
+        exc = exc.__cause__
     return None
 
 
@@ -570,7 +574,8 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         refused = None if isinstance(exc, SystemExit) else refused_write(exc)
         if refused is not None:  # a folder made read-only, a file of the run whose permissions changed, a disk error
             end_env_workers()
-            stop_short_of(f"cannot write {refused.filename} ({refused.strerror})", "", this_run_dir(checkpoint),
+            verb = "write" if refused.errno == errno.EROFS else "access"  # (EACCES, EIO: reading may be what failed)
+            stop_short_of(f"cannot {verb} {refused.filename} ({refused.strerror})", "", this_run_dir(checkpoint),
                           "make it writable", "make it writable and start the run again")
         raise
     finally:

@@ -119,12 +119,14 @@ class Progress:
             except OSError:
                 pass
 
-    def final(self, step: int) -> None:
+    def final(self, step: int, sps: float) -> None:
         """At the run's end: its last line in the file (the periodic write may be up to `interval` old, which left a
-        finished run at 55%); nothing printed."""
+        finished run at 55%); nothing printed. (A run that never reached an update keeps what it had.)"""
+        if not (self.last_print or self.last_write):
+            return
         line, self.line = self.line, False
         try:
-            self.update(step, self.last_sps, self.last_size, force=True)
+            self.update(step, sps, self.last_size, force=True)
         finally:
             self.line = line
 

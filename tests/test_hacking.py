@@ -686,3 +686,14 @@ def test_an_edit_acting_on_some_observations_only_is_caught_at_the_first_rollout
     assert f"fast path check at global_step={first}: the rollout from global_step={first - 256} acted through the " \
            "numpy path" in messages[0], messages[0]
     assert "draws other actions than act()" in messages[0] and "continuing by acting through act()" in messages[0]
+
+
+def test_the_script_file_of_an_args_class_without_one_is_empty():
+    """A review: an Args class defined in a notebook's cell (or `python -c`) has no source file, and the checkpoint's
+    record of the script that wrote it raised there, at the run's first checkpoint. It is "" (not checked)."""
+    import cascade_sac
+    from cascade_plumbing.runs import script_file
+
+    assert script_file(cascade_sac.Args) == "cascade_sac.py"
+    cell = type("Args", (), {"__module__": "a_notebook_cell_that_is_no_module"})
+    assert script_file(cell) == ""

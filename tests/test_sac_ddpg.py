@@ -704,3 +704,15 @@ def test_sac_evaluations_act_through_get_action(monkeypatch):
     for deterministic, expected in ((False, 0.25), (True, -0.5)):
         action, fallback = mod.full_policy(actor, deterministic)(obs, torch.Generator().manual_seed(0))
         assert torch.equal(action, torch.full((4, 3), expected)) and fallback.shape == (1, 4)
+
+
+@pytest.mark.parametrize("algo", ["sac", "ddpg"])
+def test_a_run_started_before_the_batch_size_check_still_resumes(algo, tmp_path):
+    """A review: the check that --batch-size fits the rows the buffer can hold ran on resume too, so a run started
+    before it with a small --k could never be resumed (a resume may not change --batch-size). New runs only."""
+    mod = SCRIPTS[algo]
+    args = mod.Args(env_id="Pendulum-v1", n=1, k=600, learning_starts=300, batch_size=2000,
+                    track_dir=str(tmp_path / "runs"))
+    with pytest.raises(SystemExit, match="--batch-size 2000 exceeds the 600 rows"):
+        mod.validate(args)
+    mod.validate(args, new_run=False)

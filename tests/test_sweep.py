@@ -125,11 +125,14 @@ def test_scale_keeps_budgets_equal_and_scales_the_defaults():
     # budget against its baseline's), is refused in one line naming a scale that works for every template (the
     # largest need, rounded up: 0.002 was named, and refused in turn)
     for preset, scale, problem, works in (("standard", "0.001", "less than one PPO rollout", "0.0021"),
-                                          ("k-sweep", "0.0005", "less than one PPO rollout", "0.0075"),
+                                          ("k-sweep", "0.0005", "less than one PPO rollout", "0.014"),
                                           ("standard", "0.005", "--k 4096 (whole PPO rollouts) instead of 5000, 18% off",
-                                           "0.0056"),
+                                           "0.0057"),
+                                          # each within 10%, but one up, one down: 12% apart (a review)
+                                          ("standard", "0.0056", "--k 6144 and 'ppo_baseline.py --total-timesteps "
+                                           "6000000' --total-timesteps 32768 (+10% and -2% of", "0.0057"),
                                           ("discrete", "0.0007", "--k 512 (whole PPO rollouts) instead of 700, 27% off",
-                                           "0.00094")):
+                                           "0.00095")):
         error = error_line(run_script("sweep.py", "--preset", preset, "--scale", scale, "--dry-run"))
         assert problem in error and f"; use --scale {works} (the " in error, error
         assert run_script("sweep.py", "--preset", preset, "--scale", works, "--dry-run").returncode == 0
