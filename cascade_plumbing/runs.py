@@ -456,14 +456,20 @@ def script_name(file: str) -> str:
     return os.path.basename(file)[: -len(".py")] if file.endswith(".py") else os.path.basename(file)
 
 
+def check_resume_settings(args: Any) -> None:
+    """The settings --resume takes anew (RESUME_OVERRIDABLE) that can be out of range: checked also when the run
+    is finished and nothing else runs, so a wrong value is never accepted silently."""
+    check_threads(args.torch_threads)
+    if getattr(args, "checkpoint_every", 0) < 0:
+        fail(f"--checkpoint-every must be >= 0 (0: only the checkpoints a run always writes; got {args.checkpoint_every})")
+
+
 def check_common_settings(args: Any) -> None:
     """Settings every run shares, refused in one line each (instead of a traceback later, or a run folder left);
     first every real-valued setting: finite and in its range (errors.check_ranges)."""
     check_ranges(args)
     check_seed(args.seed)
-    check_threads(args.torch_threads)
-    if getattr(args, "checkpoint_every", 0) < 0:
-        fail(f"--checkpoint-every must be >= 0 (0: only the checkpoints a run always writes; got {args.checkpoint_every})")
+    check_resume_settings(args)
     if RESUMING:  # its folder exists: whether the run can write there, not whether new folders can be made beside it
         check_run_dir_writable(RESUMING[0])
     else:
@@ -534,6 +540,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     else:
         refuse_idle_flags(args, given)
     if checkpoint is not None:
+        check_resume_settings(args)
         if finished(args, checkpoint):
             if "iteration" in checkpoint:  # a kill while the last iteration_<i>.pt was copied: rebuild it all the same
                 repair_iteration_files(os.path.dirname(checkpoint["path"]), checkpoint, at_iteration_end=True)

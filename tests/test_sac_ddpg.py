@@ -608,6 +608,11 @@ def test_hopper_smoke_run_scalars_checkpoints_resume_and_evaluate(algo, tmp_path
         assert not np.array_equal(got["members"][0], got["members"][1])
     code, out, error = cli_in_process(capsys, script, "--resume", run_dir)
     assert code == 0 and "nothing to resume" in out, error
+    # a bad value of a flag --resume takes anew is refused even though nothing would run (it said "nothing to
+    # resume" and exited 0)
+    for flag, value in [("--checkpoint-every", "-5"), ("--torch-threads", "0")]:
+        code, out, error = cli_in_process(capsys, script, "--resume", run_dir, flag, value)
+        assert code != 0 and flag in error and "nothing to resume" not in out, (out, error)
 
 
 def test_help_names_the_baselines(capsys):
