@@ -82,7 +82,7 @@ class Args:
     discretize: Literal["auto", "on", "off"] = "auto"
     """auto: discretize a Box action space of A <= 10 dims into 2^A actions (Humanoid's 17 are refused), use a Discrete one as it is; on: require a Box space to discretize (an error on a discrete env); off: require a natively discrete env"""
     normalize: bool = True
-    """observation and reward normalization of discretized Box envs, as the paper's code ran Fig. 16 (its text names CleanRL ppo.py, which has none: `--no-normalize`); their observations and rewards are clipped to ±10 either way; natively discrete envs are never normalized or clipped (CleanRL)"""
+    """observation and reward normalization of discretized Box envs, as the paper's code ran Fig. 16 (its text names CleanRL ppo.py, which has none: `--no-normalize`); their observations and rewards are clipped to ±10 either way; natively discrete envs are never normalized or clipped (CleanRL; `--normalize` is refused there)"""
 
     # Network and schedule
     total_timesteps: int = 10_000_000

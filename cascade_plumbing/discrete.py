@@ -21,6 +21,7 @@ from .envs import OBS_CLIP, obs_statistics, probe_spaces
 from .errors import fail
 from .evaluation import EvaluationEnvs, open_saved_model, save_video_of_one_episode
 from .record import RunRecord
+from .runs import NEW_RUN_FLAGS
 
 MAX_DISCRETIZED_DIMS = 10  # 2^10 = 1024 actions; Humanoid's 17 dims (131072 actions) are out of scope
 
@@ -107,6 +108,9 @@ def resolve_env(args: Any, continuous_script: str) -> tuple[bool, bool]:
         if action_space.start != 0:
             fail(f"{args.env_id}'s actions start at {action_space.start}; only Discrete(n) spaces starting at 0 "
                  "are supported")
+        if args.normalize and "normalize" in NEW_RUN_FLAGS:  # it would be ignored: say so rather than run
+            fail(f"--normalize applies to discretized Box envs only: {args.env_id} is natively discrete and is never "
+                 "normalized or clipped (as CleanRL ppo.py); leave it out")
         return False, False  # as CleanRL ppo.py: natively discrete envs get no normalization or clipping
     if isinstance(action_space, gym.spaces.Box):
         if args.discretize == "off":

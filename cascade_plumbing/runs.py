@@ -32,6 +32,7 @@ from .errors import check_ranges, fail, parse_command_line
 from .tracking import check_wandb, finish_wandb
 
 RESUMING: list[str] = []  # the run folder the command line's --resume continues in (run_main)
+NEW_RUN_FLAGS: set[str] = set()  # the flags given on the command line of a new run (run_main), for idle checks
 
 
 def check_run_dir_writable(run_dir: str) -> None:
@@ -532,6 +533,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         return
     checkpoint = None
     RESUMING.clear()
+    NEW_RUN_FLAGS.clear()
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
         refuse_another_scripts_checkpoint(checkpoint, args_type, "resume")
@@ -539,6 +541,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         args = resumed_args(args, checkpoint, given)
     else:
         refuse_idle_flags(args, given)
+        NEW_RUN_FLAGS.update(given)  # (the checks that need the env: discrete.resolve_env)
     if checkpoint is not None:
         check_resume_settings(args)
         if finished(args, checkpoint):
@@ -587,6 +590,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         raise
     finally:
         RESUMING.clear()
+        NEW_RUN_FLAGS.clear()
     # The work is done and saved: a stop from here on must not turn a finished run into a failed one (at
     # interpreter exit Python resets its own handlers to the default, which would die by the signal silently).
     signal.signal(signal.SIGTERM, signal.SIG_IGN)

@@ -252,6 +252,17 @@ def test_flags_a_training_run_cannot_act_on_are_refused(script, flags, message, 
     assert not (tmp_path / "runs").exists()
 
 
+@pytest.mark.parametrize("script", ["cascade_ppo_discrete", "ppo_baseline_discrete"])
+def test_normalize_on_a_natively_discrete_env_is_refused(script, tmp_path):
+    """Known gap: --normalize on CartPole was accepted and ignored (natively discrete envs are never normalized)."""
+    budget = ["--k", "512"] if script == "cascade_ppo_discrete" else ["--total-timesteps", "512"]  # (if it ran)
+    line = error_line_in_process(f"{script}.py", "--env-id", "CartPole-v1", "--normalize", *budget,
+                                 "--track-dir", str(tmp_path / "runs"))
+    assert line == ("error: --normalize applies to discretized Box envs only: CartPole-v1 is natively discrete and "
+                    "is never normalized or clipped (as CleanRL ppo.py); leave it out"), line
+    assert not (tmp_path / "runs").exists() or os.listdir(tmp_path / "runs") == []
+
+
 def test_an_unknown_env_id_suggests_ids_that_can_be_made_here():
     """Audit: `--env-id Hopper` suggested Hopper-v3, which needs the retired mujoco-py and cannot be made here;
     now the versions of that name that can be made, the one asked for first."""
