@@ -270,6 +270,30 @@ def flag_value(flags: list[str], name: str) -> str | None:
     return value
 
 
+def set_flag_value(flags: list[str], name: str, value: str) -> None:
+    """Set the value of `name` where `flag_value` reads it (its last occurrence), in place."""
+    for i in reversed(range(len(flags))):
+        if flag_name(flags[i]) == name:
+            if "=" in flags[i]:
+                flags[i] = f"{flags[i].partition('=')[0]}={value}"
+            else:
+                flags[i + 1] = value
+            return
+    raise KeyError(name)
+
+
+def whole_lr_cycles(flags: list[str]) -> int:
+    """How many LR cycles `--lr-schedule cyclic` fits in --total-timesteps, where it is a whole number of them (0
+    otherwise): scaling keeps that number, so the last cycle is not cut short by rounding."""
+    if flag_value(flags, "--lr-schedule") != "cyclic":
+        return 0
+    try:
+        total, cycle = int(flag_value(flags, "--total-timesteps") or 0), int(flag_value(flags, "--cycle-steps") or 0)
+    except ValueError:  # (not whole numbers: scale_template says so)
+        return 0
+    return total // cycle if cycle > 0 and total > 0 and total % cycle == 0 else 0
+
+
 @functools.cache
 def script_default(script: str, field: str) -> int | None:
     """The script's default of its Args field `field` (e.g. checkpoint_every), or None where it has no such flag
@@ -331,6 +355,7 @@ def scale_template(script: str, flags: list[str], scale: float,
             out += [flag, str(default)]
     rollout = rollout_steps(script, out)
     smallest, rounding = 0.0, (0.0, 0.0, "", 0, 0)
+    cycles = whole_lr_cycles(out)
 
     def scaled(name: str, value: str) -> str:
         nonlocal smallest, rounding
@@ -360,6 +385,9 @@ def scale_template(script: str, flags: list[str], scale: float,
             out[i] = f"{flag.partition('=')[0]}={scaled(name, value)}"
         elif i + 1 < len(out):
             out[i + 1] = scaled(name, out[i + 1])
+    if cycles:  # rounded on their own, 6 cycles of 10,240 steps got a budget of 59,392: the last cycle cut short
+        cycle = int(flag_value(out, "--cycle-steps"))
+        set_flag_value(out, "--total-timesteps", str(cycles * cycle))
     cadence = []
     default = script_default(script, "checkpoint_every")
     if default and flag_value(out, CADENCE_FLAG) is None:

@@ -2,6 +2,7 @@
 
 import json
 import os
+import shlex
 import socket
 import subprocess
 import sys
@@ -38,6 +39,9 @@ def test_every_preset_expands_to_the_papers_grid(preset):
                 rollout = sweep.rollout_steps(run.script, run.flags)
                 if rollout:
                     expected = max(round(expected / rollout), 1) * rollout
+                if flag == "--total-timesteps" and original.get("--lr-schedule") == "cyclic":  # whole LR cycles
+                    cycles = int(original[flag]) // int(original["--cycle-steps"])
+                    expected = cycles * int(sweep.flag_value(run.flags, "--cycle-steps"))
                 assert int(run.flags[run.flags.index(flag) + 1]) == expected
         # the evaluation cadence too (the presets' 50000, the scripts' default 10000), not below 1000 steps
         assert sweep.flag_value(run.flags, "--eval-every") == "1000"
@@ -77,8 +81,20 @@ def test_scale_scales_the_checkpoint_cadence():
     assert one("ppo_baseline.py --total-timesteps=6000000 --eval-every 0", 0.01).flags == \
         ["--total-timesteps=59392", "--eval-every", "0"]  # evaluation off stays off
     # Fig. 3's LR cycle shrinks with the run it divides (6 cycles either way)
+    # (not without the cyclic schedule: there --cycle-steps is refused by the script)
     assert one("ppo_baseline.py --total-timesteps 6000000 --cycle-steps 1000000 --eval-every 0", 0.01).flags == \
         ["--total-timesteps", "59392", "--cycle-steps", "10240", "--eval-every", "0"]
+    # ... and the budget stays 6 whole cycles, as the Cascade it is compared with (6 x --k 10240): rounded on their
+    # own the total was 59,392 steps, the last cycle cut short
+    for lr in (["--lr-schedule", "cyclic"], ["--lr-schedule=cyclic"]):
+        flags = one(shlex.join(["ppo_baseline.py", "--total-timesteps=6000000", "--cycle-steps", "1000000", *lr]),
+                    0.01).flags
+        assert flags[:3] == ["--total-timesteps=61440", "--cycle-steps", "10240"], flags
+    assert sweep.flag_value(one("ppo_baseline.py --lr-schedule cyclic --eval-every 0", 0.01).flags,
+                            "--total-timesteps") == str(6 * 10240)  # the defaults: 6M steps, cycles of 1M
+    # a total that is no whole number of cycles is rounded on its own
+    assert one("ppo_baseline.py --total-timesteps 5500000 --lr-schedule cyclic", 0.01).flags[:2] == \
+        ["--total-timesteps", "55296"]
     # ... also where the template leaves the cycle at its default (it stayed 1M: a 60k-step run that never cycled);
     # without the cyclic schedule no --cycle-steps is added (the script refuses one there)
     for template in ("ppo_baseline.py --lr-schedule cyclic --eval-every 0",
