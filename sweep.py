@@ -766,7 +766,8 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
     import importlib
     import io
 
-    from cascade_plumbing.runs import explicit_fields, refuse_idle_flags  # (torch: only when a sweep is run)
+    # (torch: only when a sweep is run)
+    from cascade_plumbing.runs import NEW_RUN_FLAGS, explicit_fields, refuse_idle_flags
 
     if ROOT not in sys.path:
         sys.path.insert(0, ROOT)
@@ -790,12 +791,16 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
             said = quiet.getvalue().strip().splitlines()
             reason = parse_error_line(quiet.getvalue()) or (said[-1] if said else "refused")
             fail(f"'{template}': {run.script} does not accept it: {reason}")
+        given = explicit_fields(module.Args, argv)
         try:
-            refuse_idle_flags(script_args, explicit_fields(module.Args, argv))
+            refuse_idle_flags(script_args, given)
+            NEW_RUN_FLAGS.update(given)  # (the idle checks that need the env, as run_main sets them)
             with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
                 check(script_args)  # (warnings each run prints itself are not repeated here)
         except SystemExit as exc:
             fail(f"'{template}' on {run.env_id}: {str(exc).removeprefix('error: ')}")
+        finally:
+            NEW_RUN_FLAGS.clear()
 
 
 def refuse_repeated_list_flags(argv: list[str]) -> None:

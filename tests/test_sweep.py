@@ -202,6 +202,8 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
               "--policy-frequency 1000: no update step of an iteration (101 to 599) is a multiple of it"),
              (["--preset", "sac", "--scale", "0.000001"], "--k 0 must exceed --learning-starts 0 + 1"),
              (["--command", "cascade_sac.py --n 1 --keep-buffer"], "--keep-buffer has no effect with --n 1"),
+             (["--command", "ppo_baseline_discrete.py --normalize", "--envs", "CartPole-v1"],
+              "on CartPole-v1: --normalize applies to discretized Box envs only"),
              (["--preset", "discrete", "--envs", "FrozenLake-v1"], "on FrozenLake-v1: FrozenLake-v1 has a Discrete "
               "observation space"),
              (["--command", "cascade_sac.py --exp-name"], "--exp-name in 'cascade_sac.py --exp-name' has no value"),
