@@ -512,6 +512,18 @@ MUTATIONS += [
              ("tests/test_offpolicy_resume.py::test_a_full_disk_at_a_checkpoint_is_named_as_one",)),
     Mutation("parse errors: the flag tyro suggests left out", "cascade_plumbing/errors.py",
              "if heading == \"Perhaps you meant:\" and said:", "if False:", ("tests/test_bad_input.py",)),
+    Mutation("resume: a finished run takes a negative --checkpoint-every", "cascade_plumbing/runs.py",
+             "        check_resume_settings(args)\n        if finished(args, checkpoint):",
+             "        if finished(args, checkpoint):",
+             ("tests/test_sac_ddpg.py::test_hopper_smoke_run_scalars_checkpoints_resume_and_evaluate",)),
+    Mutation("discrete: --normalize on CartPole ignored", "cascade_plumbing/discrete.py",
+             'if args.normalize and "normalize" in NEW_RUN_FLAGS:', "if False:",
+             ("tests/test_bad_input.py::test_normalize_on_a_natively_discrete_env_is_refused",
+              SWEEP_TEST + "test_each_template_is_checked_by_its_script_before_any_run")),
+    Mutation("sweep: the last LR cycle of a scaled budget cut short", "sweep.py",
+             "    cycles = whole_lr_cycles(out)", "    cycles = 0",
+             (SWEEP_TEST + "test_every_preset_expands_to_the_papers_grid",
+              SWEEP_TEST + "test_scale_scales_the_checkpoint_cadence")),
 ]
 
 
