@@ -47,6 +47,7 @@ from cascade_plumbing.evaluation import (
 )
 from cascade_plumbing.fast import FastPaths, mlp_ppo_gradients, numpy_mlp_policy, share_one_buffer
 from cascade_plumbing.ppo import (
+    baseline_updates,
     check_box_env,
     check_ppo_settings,
     count_parameters,
@@ -104,7 +105,7 @@ class Args:
     lr_schedule: Literal["global", "cyclic", "constant"] = "global"
     """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps, with a fresh Adam at each restart as the paper's code ran Fig. 3 (a new PPO instance per cycle, the nets kept; Section 4.2); constant: no decay"""
     cycle_steps: int = 1_000_000
-    """length of one learning-rate cycle in env steps, with --lr-schedule cyclic"""
+    """length of one learning-rate cycle in env steps, with --lr-schedule cyclic (a cycle is cycle_steps // batch updates, as a Cascade iteration; the run is whole cycles, then the rest)"""
 
     # PPO (CleanRL ppo_continuous_action defaults)
     learning_rate: float = 3e-4
@@ -315,7 +316,7 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
     act_dim = int(np.prod(envs.single_action_space.shape))
     batch_size = args.num_envs * args.num_steps
     minibatch_size = batch_size // args.num_minibatches
-    total_updates = args.total_timesteps // batch_size
+    total_updates = baseline_updates(args, batch_size)  # (under a cyclic LR: whole cycles, then the rest)
     updates_per_cycle = max(args.cycle_steps // batch_size, 1)
     run = RunLog(args, checkpoint, obs_dim, act_dim, envs, total_updates * batch_size)
     fast = make_fast_paths(args, device, run)  # section 2, checked against this section while the run trains
@@ -499,10 +500,10 @@ class RunLog(RunRecord):
     def __init__(self, args: Args, checkpoint: dict | None, obs_dim: int, act_dim: int,
                  envs: gym.vector.VectorEnv, total_steps: int):
         batch_size = args.num_envs * args.num_steps
-        if args.total_timesteps % batch_size and checkpoint is None:
-            updates = args.total_timesteps // batch_size
-            print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
-                  f"the run does {updates} updates = {updates * batch_size} steps")
+        if total_steps != args.total_timesteps and checkpoint is None:
+            cycles = f" or of --cycle-steps {args.cycle_steps}" if args.lr_schedule == "cyclic" else ""
+            print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}"
+                  f"{cycles}; the run does {total_steps // batch_size} updates = {total_steps} steps")
         super().__init__(args, checkpoint, envs, total_steps, at_iteration_end=False, iteration_files=False)  # no iterations
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self.runner = EvaluationRunner(
@@ -590,7 +591,8 @@ def load_checkpoint(path: str, reader_flag: str = "") -> dict:
 
 def finished(args: Args, checkpoint: dict) -> bool:
     """Whether the checkpoint is the end of the run (resuming it would have nothing left to do)."""
-    return checkpoint["updates_done"] == args.total_timesteps // (args.num_envs * args.num_steps)
+    # (>=: a cyclic run finished before its budget was counted in whole cycles made one update more)
+    return checkpoint["updates_done"] >= baseline_updates(args, args.num_envs * args.num_steps)
 
 
 def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") -> Actor:

@@ -44,7 +44,7 @@ from cascade_plumbing.discrete import (  # noqa: F401 (MAX_DISCRETIZED_DIMS, Dis
 )
 from cascade_plumbing.envs import obs_statistics
 from cascade_plumbing.errors import fail
-from cascade_plumbing.ppo import check_ppo_settings
+from cascade_plumbing.ppo import baseline_updates, check_ppo_settings
 from cascade_plumbing.runs import check_common_settings, run_device, run_main, seed_everything, set_threads
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
@@ -92,7 +92,7 @@ class Args:
     lr_schedule: Literal["global", "cyclic", "constant"] = "global"
     """global: linear decay to 0 over the run (CleanRL); cyclic: decay restarts every --cycle-steps, with a fresh Adam at each restart (as ppo_baseline.py and the paper's code); constant: no decay"""
     cycle_steps: int = 1_000_000
-    """length of one learning-rate cycle in env steps, with --lr-schedule cyclic"""
+    """length of one learning-rate cycle in env steps, with --lr-schedule cyclic (a cycle is cycle_steps // batch updates, as a Cascade iteration; the run is whole cycles, then the rest)"""
 
     # PPO (CleanRL ppo.py defaults)
     learning_rate: float = 2.5e-4
@@ -284,10 +284,11 @@ def train(args: Args, checkpoint: dict | None = None) -> dict:
     obs_dim = int(np.prod(envs.single_observation_space.shape))
     num_actions = int(envs.single_action_space.n)
     batch_size = args.num_envs * args.num_steps
-    total_updates = args.total_timesteps // batch_size
+    total_updates = baseline_updates(args, batch_size)  # (under a cyclic LR: whole cycles, then the rest)
     updates_per_cycle = max(args.cycle_steps // batch_size, 1)
-    if args.total_timesteps % batch_size and checkpoint is None:
-        print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}; "
+    if total_updates * batch_size != args.total_timesteps and checkpoint is None:
+        cycles = f" or of --cycle-steps {args.cycle_steps}" if args.lr_schedule == "cyclic" else ""
+        print(f"note: total_timesteps={args.total_timesteps} is not a multiple of the batch size {batch_size}{cycles}; "
               f"the run does {total_updates} updates = {total_updates * batch_size} steps")  # (with --quiet too)
     say(f"{args.env_id}: {num_actions} discrete actions"
         f"{' (discretized Box)' if discretize else ''}, normalization {'on' if normalize else 'off'}")
@@ -437,7 +438,8 @@ def load_checkpoint(path: str, reader_flag: str = "") -> dict:
 
 def finished(args: Args, checkpoint: dict) -> bool:
     """Whether `checkpoint` is the end of its run (resuming it has nothing left to do)."""
-    return checkpoint["updates_done"] == args.total_timesteps // (args.num_envs * args.num_steps)
+    # (>=: a cyclic run finished before its budget was counted in whole cycles made one update more)
+    return checkpoint["updates_done"] >= baseline_updates(args, args.num_envs * args.num_steps)
 
 
 def actor_from_checkpoint(checkpoint: dict, device: str | torch.device = "cpu") -> nn.Sequential:

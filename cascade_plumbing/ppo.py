@@ -56,6 +56,17 @@ def check_ppo_settings(args: Any) -> int:
     return batch_size
 
 
+def baseline_updates(args: Any, batch_size: int) -> int:
+    """The updates of a PPO baseline run: --total-timesteps in whole rollouts; under `--lr-schedule cyclic`, whole
+    cycles of `cycle_steps // batch_size` updates each (as Cascade's iterations of `k // batch_size`), then what
+    remains. (Rounded as one total, 6M steps in cycles of 1M were 2929 updates of 2048 = 6 x 488 + 1: the last update
+    began a 7th cycle, a fresh Adam at the full learning rate, just before the final evaluation.)"""
+    if args.lr_schedule != "cyclic":
+        return args.total_timesteps // batch_size
+    cycles, rest = divmod(args.total_timesteps, args.cycle_steps)
+    return cycles * (args.cycle_steps // batch_size) + rest // batch_size
+
+
 def check_box_env(env_id: str) -> None:
     """--env-id is registered and acts in a Box (continuous) action space; otherwise one line (naming the discrete
     script for a discrete env)."""

@@ -19,7 +19,7 @@ import ppo_baseline as pb
 import ppo_baseline_discrete as pbd
 import sweep
 from cascade_plumbing import offpolicy
-from helpers import resume_from
+from helpers import read_scalars, resume_from
 
 HOPPER_OBS, HOPPER_ACT = 11, 3
 
@@ -247,6 +247,24 @@ def test_cyclic_baseline_restarts_adam_every_cycle(num_envs, tmp_path):
                              "track_dir": str(tmp_path / "global")})
     checkpoint = pb.load_checkpoint(pb.train(global_args)["run_dir"])
     assert {int(s["step"]) for s in checkpoint["optimizer"]["state"].values()} == {8 * 2 * 4}
+
+
+@pytest.mark.parametrize("module,env_id", [(pb, "Pendulum-v1"), (pbd, "CartPole-v1")])
+def test_cyclic_baseline_runs_whole_cycles_only(module, env_id, tmp_path, capsys):
+    """A fault hunt: 6M steps in cycles of 1M made 2929 updates of 2048 = 6 x 488 + 1, so the last update began a
+    7th cycle (a fresh Adam at the full learning rate) just before the final evaluation; Cascade's 6 iterations run
+    6 x 488. Here 3 cycles of 1000 steps in rollouts of 256 (3 updates each): 9 updates, not 3000 // 256 = 11."""
+    args = module.Args(env_id=env_id, total_timesteps=3000, num_envs=1, num_steps=256, num_minibatches=1,
+                       update_epochs=1, lr_schedule="cyclic", cycle_steps=1000, eval_every=0, quiet=True,
+                       track_dir=str(tmp_path))
+    result = module.train(args)
+    assert "the run does 9 updates = 2304 steps" in capsys.readouterr().out
+    rates = [v for _, v in read_scalars(result["run_dir"])["charts/learning_rate"]]
+    np.testing.assert_allclose(rates, [args.learning_rate * f for f in (1, 2 / 3, 1 / 3)] * 3, rtol=1e-6)
+    checkpoint = module.load_checkpoint(result["run_dir"])
+    assert checkpoint["global_step"] == 9 * 256 and checkpoint["updates_done"] == 9
+    assert {int(s["step"]) for s in checkpoint["optimizer"]["state"].values()} == {3}  # the third cycle's 3 updates
+    assert module.finished(args, checkpoint) and module.finished(args, {**checkpoint, "updates_done": 10})
 
 
 # ----------------------------------------------------------------------------------------------
