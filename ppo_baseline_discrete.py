@@ -206,7 +206,7 @@ def ppo_loss(logits: torch.Tensor, newvalue: torch.Tensor, mb: dict[str, torch.T
     """CleanRL ppo.py's loss on a minibatch `mb` of the rollout (its actions, logprobs, advantages, returns and
     values), given the actor's `logits` and the critic's `newvalue` there: the clipped surrogate, the (clipped)
     value loss and the entropy bonus. Returns the loss and what CleanRL logs of it."""
-    dist = torch.distributions.Categorical(logits=logits)
+    dist = torch.distributions.Categorical(logits=logits, validate_args=False)  # non-finite logits: the run's guard
     newlogprob = dist.log_prob(mb["actions"])
     entropy = dist.entropy()
     logratio = newlogprob - mb["logprobs"]

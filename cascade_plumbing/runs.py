@@ -26,7 +26,7 @@ import torch
 import tyro
 from threadpoolctl import ThreadpoolController
 
-from .checkpoints import CHECKPOINT_NAME, refuse_overwriting_later_work, repair_iteration_files
+from .checkpoints import CHECKPOINT_NAME, non_finite_advice, refuse_overwriting_later_work, repair_iteration_files
 from .envs import end_env_workers
 from .errors import check_ranges, fail, parse_command_line
 from .tracking import check_wandb, finish_wandb
@@ -306,6 +306,11 @@ def out_of_memory(exc: BaseException) -> bool:
     return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and "can't allocate memory" in str(exc))
 
 
+def overflowed(exc: BaseException) -> bool:
+    """Whether `exc` is torch refusing a number too large for float32 (Adam's step at --learning-rate 1e300)."""
+    return isinstance(exc, RuntimeError) and "cannot be converted to type float without overflow" in str(exc)
+
+
 def no_memory(exc: BaseException, run_dir: str | None, args: Any) -> None:
     """Stop on a failed allocation (nets or batches too large for this machine) in one line, like a full disk
     (stop_short_of), naming the flags of this script that size the nets and batches."""
@@ -581,6 +586,13 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
         if out_of_memory(exc):  # e.g. a --hidden-size that does not fit: one line, not torch's traceback
             end_env_workers()
             no_memory(exc, this_run_dir(checkpoint), args)
+        if overflowed(exc):  # the non-finite guard's case, one step earlier: a float32 could not hold a value
+            end_env_workers()
+            run_dir = this_run_dir(checkpoint)
+            rates = " / ".join(f"--{name.replace('_', '-')}" for name in ("learning_rate", "policy_lr", "q_lr")
+                               if hasattr(args, name))
+            fail(f"a value overflowed float32 ({str(exc).splitlines()[0]}), e.g. a learning rate too large for it; "
+                 f"{non_finite_advice(os.path.join(run_dir or '', CHECKPOINT_NAME), rates)}")
         refused = None if isinstance(exc, SystemExit) else refused_write(exc)
         if refused is not None:  # a folder made read-only, a file of the run whose permissions changed, a disk error
             end_env_workers()

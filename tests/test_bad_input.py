@@ -263,6 +263,19 @@ def test_normalize_on_a_natively_discrete_env_is_refused(script, tmp_path):
     assert not (tmp_path / "runs").exists() or os.listdir(tmp_path / "runs") == []
 
 
+@pytest.mark.parametrize("script", ["cascade_ppo_discrete", "ppo_baseline_discrete"])
+@pytest.mark.parametrize("rate,line", [("1e30", "error: non-finite loss or parameters at global_step=512"),
+                                       ("1e300", "error: a value overflowed float32 (value cannot be converted")])
+def test_a_diverging_discrete_run_stops_in_one_line(script, rate, line, tmp_path):
+    """A fault hunt: a NaN in one minibatch made the next minibatch's Categorical raise its argument check (a
+    traceback with a tensor dump) before the non-finite guard ran; a learning rate beyond float32 was Adam's
+    overflow traceback (every script: run_main's handler)."""
+    budget = ["--n", "1", "--k", "1024"] if script == "cascade_ppo_discrete" else ["--total-timesteps", "1024"]
+    got = error_line_in_process(f"{script}.py", "--env-id", "CartPole-v1", *budget, "--learning-rate", rate,
+                                "--eval-every", "0", "--track-dir", str(tmp_path / "runs"))
+    assert got.startswith(line) and got.endswith("start a new run with a lower --learning-rate (or another --seed)"), got
+
+
 def test_an_unknown_env_id_suggests_ids_that_can_be_made_here():
     """Audit: `--env-id Hopper` suggested Hopper-v3, which needs the retired mujoco-py and cannot be made here;
     now the versions of that name that can be made, the one asked for first."""
