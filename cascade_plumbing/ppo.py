@@ -51,6 +51,10 @@ def check_ppo_settings(args: Any) -> int:
             hint = f"; with --num-minibatches {args.num_minibatches}, --num-envs {', '.join(map(str, working))} work"
         fail(f"the batch size {batch_size} (num_envs*num_steps) is not divisible by --num-minibatches "
              f"{args.num_minibatches}{hint}, or set --num-steps")
+    if getattr(args, "norm_adv", False) and batch_size // args.num_minibatches < 2:  # (a std over one row is NaN)
+        fail(f"a minibatch of one row (batch {batch_size} in --num-minibatches {args.num_minibatches}) cannot "
+             "normalize its advantages (--norm-adv); lower --num-minibatches, raise --num-steps or --num-envs, or "
+             "pass --no-norm-adv")
     if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
         fail("--eval-every must be >= 0 and --eval-episodes >= 1")
     return batch_size

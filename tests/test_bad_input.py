@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import gymnasium as gym
 import pytest
 
-from helpers import error_line, error_line_in_process, run_script
+from helpers import error_line, error_line_in_process, run_in_process, run_script
 
 SCRIPTS = ["cascade_ppo_continuous", "ppo_baseline", "cascade_ppo_discrete", "ppo_baseline_discrete", "cascade_sac",
            "cascade_ddpg"]
@@ -274,6 +274,23 @@ def test_a_diverging_discrete_run_stops_in_one_line(script, rate, line, tmp_path
     got = error_line_in_process(f"{script}.py", "--env-id", "CartPole-v1", *budget, "--learning-rate", rate,
                                 "--eval-every", "0", "--track-dir", str(tmp_path / "runs"))
     assert got.startswith(line) and got.endswith("start a new run with a lower --learning-rate (or another --seed)"), got
+
+
+@pytest.mark.parametrize("script,flags", [
+    ("cascade_ppo_continuous", ["--env-id", "Pendulum-v1", "--n", "1", "--k", "8"]),
+    ("ppo_baseline", ["--env-id", "Pendulum-v1", "--total-timesteps", "8"]),
+    ("cascade_ppo_discrete", ["--env-id", "CartPole-v1", "--n", "1", "--k", "8"]),
+    ("ppo_baseline_discrete", ["--env-id", "CartPole-v1", "--total-timesteps", "8"])])
+def test_a_minibatch_of_one_row_with_advantage_normalization_is_refused(script, flags, tmp_path):
+    """A fault hunt: accepted, then the std of one advantage was NaN: a misleading fast-path warning and 'lower
+    --learning-rate' (continuous), a traceback (discrete). With --no-norm-adv such a run is fine."""
+    common = ["--num-envs", "1", "--num-steps", "4", "--num-minibatches", "4", "--eval-every", "0"]
+    line = error_line_in_process(f"{script}.py", *flags, *common, "--track-dir", str(tmp_path / "runs"))
+    assert line == ("error: a minibatch of one row (batch 4 in --num-minibatches 4) cannot normalize its advantages "
+                    "(--norm-adv); lower --num-minibatches, raise --num-steps or --num-envs, or pass --no-norm-adv")
+    assert not (tmp_path / "runs").exists() or os.listdir(tmp_path / "runs") == []
+    assert run_in_process(f"{script}.py", *flags, *common, "--no-norm-adv", "--quiet",
+                          "--track-dir", str(tmp_path / "ok"))[0] == 0
 
 
 def test_an_unknown_env_id_suggests_ids_that_can_be_made_here():
