@@ -154,7 +154,7 @@ class Args:
     eval_episodes: int = 10
     """episodes per evaluation (stochastic policy, frozen observation statistics)"""
     eval_members: bool = True
-    """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`)"""
+    """at the end of each iteration, also evaluate each base net acting alone (`members/return/net_i`; not with --eval-every 0)"""
     eval_in_worker: bool = True
     """run evaluations in a separate process beside training (same protocol and results, ~free on 2+ cores)"""
 

@@ -155,12 +155,14 @@ def refuse_idle_flags(args: Any, given: set[str]) -> None:
         rules += [(name, "has no effect with --n 1 (no base net is added)")
                   for name in ("keep_buffer", "reset_critic", "fallback_init", "freeze_previous")
                   if hasattr(args, name)]
-    if getattr(args, "eval_every", None) == 0 and hasattr(args, "learning_starts"):  # (SAC and DDPG evaluate the
-        # nets alone only at their periodic evaluation; the PPO scripts at each iteration's end, whatever --eval-every)
+    if getattr(args, "eval_every", None) == 0:  # (the nets alone are evaluated with the periodic evaluation only)
         rules += [(name, "has no effect with --eval-every 0 (training evaluates nothing)")
-                  for name in ("eval_members", "eval_deterministic") if hasattr(args, name)]
+                  for name in ("eval_members", "eval_deterministic", "eval_episodes", "eval_in_worker")
+                  if hasattr(args, name)]
     for name, why in rules:
-        if name in given:
+        # (a switch turned off, `--no-eval-members`, asks for nothing the run would not do: a job script may spell
+        # out the defaults)
+        if name in given and getattr(args, name) is not False:
             fail(f"--{name.replace('_', '-')} {why}; leave it out")
 
 

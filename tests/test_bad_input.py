@@ -241,6 +241,10 @@ IDLE_FLAGS = [  # (script, flags, the line): flags a training run cannot act on,
     ("cascade_ppo_discrete", ["--n", "1", "--freeze-previous"], "--freeze-previous has no effect with --n 1"),
     ("cascade_ddpg", ["--eval-every", "0", "--eval-members"], "--eval-members has no effect with --eval-every 0"),
     ("cascade_sac", ["--eval-every", "0", "--eval-deterministic"], "--eval-deterministic has no effect with --eval-"),
+    # (a fault hunt: accepted silently, the PPO scripts evaluate the nets alone with the periodic evaluation only)
+    ("cascade_ppo_continuous", ["--eval-every", "0", "--eval-members"], "--eval-members has no effect with --eval-"),
+    ("ppo_baseline", ["--eval-every", "0", "--eval-in-worker"], "--eval-in-worker has no effect with --eval-every 0"),
+    ("cascade_ppo_discrete", ["--eval-every", "0", "--eval-episodes", "0"], "--eval-episodes has no effect with"),
 ]
 
 
@@ -304,6 +308,17 @@ def test_an_unknown_env_id_suggests_ids_that_can_be_made_here():
         assert f"unknown env id '{asked}'. Did you mean {suggested}" in str(stop.value), str(stop.value)
         assert "Hopper-v3" not in str(stop.value) and "Hopper-v2" not in str(stop.value)
     assert "Hopper-v3" in gym.envs.registry  # registered all the same: the suggestion filters it out
+
+
+def test_a_switch_turned_off_is_never_an_idle_flag(tmp_path):
+    """A fault hunt: `--no-keep-buffer` with --n 1 was refused as '--keep-buffer has no effect' (a job script or a
+    sweep template that spells out the defaults). A switch turned off asks for nothing the run would not do."""
+    for script, flags in [("cascade_sac", ["--env-id", "Pendulum-v1", "--n", "1", "--k", "300", "--learning-starts",
+                                           "100", "--no-keep-buffer", "--no-eval-members", "--eval-every", "0"]),
+                          ("cascade_ppo_continuous", ["--env-id", "Pendulum-v1", "--n", "1", "--k", "2048",
+                                                      "--no-deterministic", "--no-members", "--eval-every", "0"])]:
+        code, message = run_in_process(f"{script}.py", *flags, "--quiet", "--track-dir", str(tmp_path / script))
+        assert code == 0, message
 
 
 def test_a_run_started_with_an_idle_flag_still_resumes(tmp_path, capsys):
