@@ -250,7 +250,11 @@ IDLE_FLAGS = [  # (script, flags, the line): flags a training run cannot act on,
 
 @pytest.mark.parametrize("script,flags,message", IDLE_FLAGS, ids=[f"{s}-{f[-1]}" for s, f, _ in IDLE_FLAGS])
 def test_flags_a_training_run_cannot_act_on_are_refused(script, flags, message, tmp_path):
-    line = error_line_in_process(f"{script}.py", "--env-id", ENV.get(script, "Hopper-v4"), *flags,
+    # tiny budgets: where the check is broken the run trains, ends in seconds and the test fails (not hangs)
+    budget = {"cascade_ppo_continuous": ["--k", "2048"], "ppo_baseline": ["--total-timesteps", "2048"],
+              "cascade_ppo_discrete": ["--k", "512"], "cascade_sac": ["--k", "300", "--learning-starts", "100"],
+              "cascade_ddpg": ["--k", "300", "--learning-starts", "100"]}[script]
+    line = error_line_in_process(f"{script}.py", "--env-id", ENV.get(script, "Hopper-v4"), *budget, *flags,
                                  "--track-dir", str(tmp_path / "runs"))
     assert line.startswith(f"error: {message}") and line.endswith("; leave it out"), line
     assert not (tmp_path / "runs").exists()
