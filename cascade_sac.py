@@ -44,7 +44,15 @@ from cascade_plumbing.errors import fail
 from cascade_plumbing.fast_offpolicy import OffPolicyFastPath, SACFast
 from cascade_plumbing.offpolicy import OffPolicyRun, Policy, check_replay_settings, evaluate_saved_policy, minimize
 from cascade_plumbing.replay import ReplayBuffer, buffer_capacity
-from cascade_plumbing.runs import check_common_settings, run_device, run_main, script_name, seed_everything, set_threads
+from cascade_plumbing.runs import (
+    asked_for,
+    check_common_settings,
+    run_device,
+    run_main,
+    script_name,
+    seed_everything,
+    set_threads,
+)
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -612,7 +620,7 @@ def validate(args: Args, new_run: bool = True) -> None:
         fail("--hidden-size and --num-layers must be at least 1")
     if args.policy_frequency < 1 or args.target_network_frequency < 1:
         fail("--policy-frequency and --target-network-frequency must be at least 1")
-    if new_run and args.autotune and args.alpha != Args.alpha:  # (a run started before this check resumes)
+    if new_run and args.autotune and asked_for(args, "alpha", Args.alpha):  # (a run started before this check resumes)
         fail(f"--alpha {args.alpha} has no effect with --autotune (alpha is learned, starting at 1.0); drop one of them")
     check_replay_settings(args, bounds_needed_because="SAC squashes actions into finite bounds",
                           frequencies={"--policy-frequency": "the actor's update",

@@ -56,7 +56,15 @@ from cascade_plumbing.ppo import (
     make_vector_env,
 )
 from cascade_plumbing.record import RunRecord
-from cascade_plumbing.runs import check_common_settings, run_device, run_main, script_name, seed_everything, set_threads
+from cascade_plumbing.runs import (
+    asked_for,
+    check_common_settings,
+    run_device,
+    run_main,
+    script_name,
+    seed_everything,
+    set_threads,
+)
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -614,7 +622,7 @@ def validate(args: Args, new_run: bool = True) -> None:
              f"(num_envs*num_steps = {batch_size}); raise it")
     if args.lr_schedule == "cyclic" and args.cycle_steps < batch_size:
         fail(f"--cycle-steps {args.cycle_steps} is smaller than one rollout batch ({batch_size})")
-    if new_run and args.lr_schedule != "cyclic" and args.cycle_steps != Args.cycle_steps:  # (older runs resume)
+    if new_run and args.lr_schedule != "cyclic" and asked_for(args, "cycle_steps", Args.cycle_steps):  # (older runs resume)
         fail(f"--cycle-steps has no effect with --lr-schedule {args.lr_schedule}; add --lr-schedule cyclic or drop "
              "--cycle-steps")
     check_box_env(args.env_id)

@@ -45,7 +45,7 @@ from cascade_plumbing.discrete import (  # noqa: F401 (MAX_DISCRETIZED_DIMS, Dis
 from cascade_plumbing.envs import obs_statistics
 from cascade_plumbing.errors import fail
 from cascade_plumbing.ppo import baseline_updates, check_ppo_settings
-from cascade_plumbing.runs import check_common_settings, run_device, run_main, seed_everything, set_threads
+from cascade_plumbing.runs import asked_for, check_common_settings, run_device, run_main, seed_everything, set_threads
 
 # The paper used the v4 MuJoCo tasks; gymnasium warns on every make that they are out of date.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -417,7 +417,7 @@ def resolve(args: Args, new_run: bool = True) -> tuple[bool, bool]:
              f"(num_envs*num_steps = {batch_size}); raise it")
     if args.lr_schedule == "cyclic" and args.cycle_steps < batch_size:
         fail(f"--cycle-steps {args.cycle_steps} is smaller than one rollout batch ({batch_size})")
-    if new_run and args.lr_schedule != "cyclic" and args.cycle_steps != Args.cycle_steps:  # (older runs resume)
+    if new_run and args.lr_schedule != "cyclic" and asked_for(args, "cycle_steps", Args.cycle_steps):  # (older runs resume)
         fail(f"--cycle-steps has no effect with --lr-schedule {args.lr_schedule}; add --lr-schedule cyclic or drop "
              "--cycle-steps")
     return resolve_env(args, continuous_script="ppo_baseline.py")

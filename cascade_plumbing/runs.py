@@ -464,6 +464,12 @@ def script_name(file: str) -> str:
     return os.path.basename(file)[: -len(".py")] if file.endswith(".py") else os.path.basename(file)
 
 
+def asked_for(args: Any, name: str, default: Any) -> bool:
+    """Whether a new run was asked to set `name`: on its command line (even to the default value: `--alpha 0.2`
+    with --autotune asks for something the run would not do), or, called from code, to another value."""
+    return name in NEW_RUN_FLAGS or getattr(args, name) != default
+
+
 def check_resume_settings(args: Any) -> None:
     """The settings --resume takes anew (RESUME_OVERRIDABLE) that can be out of range: checked also when the run
     is finished and nothing else runs, so a wrong value is never accepted silently."""

@@ -314,6 +314,20 @@ def test_an_unknown_env_id_suggests_ids_that_can_be_made_here():
     assert "Hopper-v3" in gym.envs.registry  # registered all the same: the suggestion filters it out
 
 
+def test_a_flag_given_at_its_default_value_is_checked_too(tmp_path):
+    """A fault hunt: `--autotune --alpha 0.2` and `--cycle-steps 1000000` with the global schedule were accepted
+    (the check compared the value with the default), while `--alpha 0.3` and `--cycle-steps 500000` were refused."""
+    for script, flags, message in [
+            ("cascade_sac", ["--env-id", "Pendulum-v1", "--n", "1", "--k", "300", "--learning-starts", "100",
+                             "--autotune", "--alpha", "0.2"], "error: --alpha 0.2 has no effect with --autotune"),
+            ("ppo_baseline", ["--env-id", "Pendulum-v1", "--total-timesteps", "2048", "--cycle-steps", "1000000"],
+             "error: --cycle-steps has no effect with --lr-schedule global"),
+            ("ppo_baseline_discrete", ["--env-id", "CartPole-v1", "--total-timesteps", "512", "--cycle-steps",
+                                       "1000000"], "error: --cycle-steps has no effect with --lr-schedule global")]:
+        line = error_line_in_process(f"{script}.py", *flags, "--eval-every", "0", "--track-dir", str(tmp_path))
+        assert line.startswith(message), line
+
+
 def test_a_switch_turned_off_is_never_an_idle_flag(tmp_path):
     """A fault hunt: `--no-keep-buffer` with --n 1 was refused as '--keep-buffer has no effect' (a job script or a
     sweep template that spells out the defaults). A switch turned off asks for nothing the run would not do."""
