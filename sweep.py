@@ -814,6 +814,23 @@ def refuse_repeated_list_flags(argv: list[str]) -> None:
                  f"after one --{name}, e.g. --{name} {example}")
 
 
+def refuse_idle_sweep_flags(args: Args, argv: list[str]) -> None:
+    """A flag given that this sweep cannot act on is refused in one line (as the scripts refuse theirs): the user
+    meant something the sweep would not do."""
+    given = {token[2:].split("=")[0].replace("-", "_") for token in argv if token.startswith("--")}
+    rules = [(name, "applies with --track only", "add --track")
+             for name in ("wandb_project_name", "wandb_entity", "wandb_group") if not args.track]
+    if args.backend == "local":
+        rules += [(name, "applies to --backend ray only", "add --backend ray")
+                  for name in ("ray_address", "cpus_per_run")]
+    else:
+        rules += [("workers", "applies to --backend local only (Ray places runs by --cpus-per-run)",
+                   "use --cpus-per-run")]
+    for name, why, instead in rules:
+        if name in given:
+            fail(f"--{name.replace('_', '-')} {getattr(args, name)} {why}; {instead}, or leave it out")
+
+
 def sweep() -> None:
     args = parse_command_line(lambda: tyro.cli(Args, description=__doc__.split("\n\n")[0]))
     refuse_repeated_list_flags(sys.argv[1:])
@@ -825,8 +842,7 @@ def sweep() -> None:
         fail(f"--status-every must be a positive number of seconds (got {args.status_every})")
     if args.backend == "ray" and not args.cpus_per_run >= 0:
         fail(f"--cpus-per-run must be >= 0 (got {args.cpus_per_run})")
-    if args.backend == "local" and args.ray_address != Args.ray_address:
-        fail(f"--ray-address {args.ray_address} applies to --backend ray only; add --backend ray, or leave it out")
+    refuse_idle_sweep_flags(args, sys.argv[1:])
     if args.list_presets:
         for name, (what, entries) in PRESETS.items():
             print(f"{name:14s} {what} ({len(entries)} runs per env and seed)")

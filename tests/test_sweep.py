@@ -217,6 +217,12 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--preset", "sac", "--status-every", "0"], "--status-every must be a positive number"),
              (["--preset", "sac", "--backend", "ray", "--cpus-per-run", "-1"], "--cpus-per-run must be >= 0"),
              (["--preset", "sac", "--ray-address", "10.0.0.1:6379"], "applies to --backend ray only"),
+             # (a fault hunt: these were ignored)
+             (["--preset", "sac", "--ray-address", "auto"], "--ray-address auto applies to --backend ray only"),
+             (["--preset", "sac", "--cpus-per-run", "3"], "--cpus-per-run 3.0 applies to --backend ray only"),
+             (["--preset", "sac", "--backend", "ray", "--workers", "3"], "--workers 3 applies to --backend local "
+              "only (Ray places runs by --cpus-per-run); use --cpus-per-run, or leave it out"),
+             (["--preset", "sac", "--wandb-group", "g"], "--wandb-group g applies with --track only; add --track"),
              (["--preset", "sac", "--python", str(tmp_path / "nope")], "is not an executable (a path, or a name"),
              (["--preset", "sac", "--python", "no-such-python3"], "is not an executable (a path, or a name"),
              (["--preset", "sac", "--sweep-dir", os.path.join(__file__, "sub")], f"{__file__} is a file, not a folder")]
