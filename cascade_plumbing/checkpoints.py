@@ -135,6 +135,13 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "", rea
         beside = ""  # a run folder that lost its checkpoint.pt: the iteration file it can continue from
         if glob.glob(os.path.join(glob.escape(os.path.dirname(path)), "iteration_*.pt")):
             beside = intact_beside(path, reader_flag)
+        else:  # a folder one level above its runs (a sweep's run_id folder, a --track-dir): name what is below
+            below = sorted(glob.glob(os.path.join(glob.escape(os.path.dirname(path)), "*", CHECKPOINT_NAME)))
+            if len(below) == 1:
+                beside = f"; the run folder {os.path.dirname(below[0])} below it has one: pass that"
+            elif below:
+                beside = (f"; {len(below)} run folders below it have one (e.g. {os.path.dirname(below[-1])}): "
+                          "pass one of them")
         fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file{beside}")
     try:
         # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs

@@ -242,6 +242,11 @@ def test_resume_bad_input(finished_run, tmp_path):
     corrupt = tmp_path / "corrupt.pt"
     corrupt.write_bytes(b"not a checkpoint at all")
     cases.append((["--resume", str(corrupt)], "cannot read checkpoint"))
+    # the folder above a run folder (a sweep's run_id folder, the --track-dir): the run folder below is named (a
+    # fault hunt: only 'no checkpoint at')
+    above = os.path.dirname(run_dir)
+    cases += [(["--resume", above], f"; the run folder {run_dir} below it has one: pass that"),
+              (["--evaluate", above], f"; the run folder {run_dir} below it has one: pass that")]
     for i, (extra, message) in enumerate(cases):
         if i == 0:  # one case through a real interpreter: stderr and the exit code
             line = error_line(run_script("cascade_ppo_continuous.py", *extra))
