@@ -233,6 +233,9 @@ def check_cli(args: Any) -> None:
     name = getattr(args, "name", None)
     if isinstance(name, str) and (not name.strip() or "/" in name or os.sep in name):
         fail(f"--name {name!r}: give a file name without a folder (the files go to --out)")
+    columns = getattr(args, "columns", None)
+    if isinstance(columns, int) and columns < 1:
+        fail(f"--columns must be at least 1 (got {columns})")
     baseline = getattr(args, "baseline", None)
     asked_baseline = baseline if baseline != getattr(type(args), "baseline", None) else None  # named, not the default
     runs = getattr(args, "runs", None)
@@ -371,6 +374,13 @@ def select_runs(
         note(f"left out {describe(missing)}: no '{tag}' logged")
         runs = [r for r in runs if tag in r.scalars]
 
+    # a setting no run records would split nothing, silently (a typo): refused; tyro's dashed spelling is accepted
+    split_by = [key.replace("-", "_") for key in split_by]
+    recorded = sorted({key for run in runs for key in run.hparams})
+    for key in split_by:
+        if key not in recorded:
+            fail(f"--split-by {key}: no run records that setting (they record: "
+                 f"{short_list(nearest_first(key, recorded))}); fix the name")
     groups: dict[tuple[str, str], list[Run]] = {}
     for run in runs:
         groups.setdefault((run.env_id, group_label(run, label_map, split_by)), []).append(run)

@@ -427,6 +427,14 @@ def test_each_name_and_folder_a_command_line_gives_is_checked(runs, tmp_path):
         common.check_cli(final_performance.Args(runs=track, baseline=baseline))
     assert "--nets 9: the runs' nets with a fallback are 2" in error_of(lambda: fallback.main(fallback.Args(
         runs=track, nets=(9,), out=str(tmp_path / "fb"))))
+    # (a fault hunt: a --split-by typo split nothing and --columns 0 drew one column, silently)
+    message = error_of(lambda: learning_curves.main(learning_curves.Args(runs=track, split_by=("fallback-nit",),
+                                                                         out=str(tmp_path / "sb"))))
+    assert message.startswith("error: --split-by fallback_nit: no run records that setting (they record: "
+                              "fallback_init"), message
+    learning_curves.main(learning_curves.Args(runs=track, split_by=("fallback-init",), out=str(tmp_path / "sb")))
+    assert error_of(lambda: common.check_cli(learning_curves.Args(runs=track, columns=0))) == \
+        "error: --columns must be at least 1 (got 0)"
     a_file = tmp_path / "a_file"
     a_file.write_text("")
     for out in (a_file, a_file / "below"):
