@@ -155,9 +155,11 @@ def refuse_idle_flags(args: Any, given: set[str]) -> None:
         rules += [(name, "has no effect with --n 1 (no base net is added)")
                   for name in ("keep_buffer", "reset_critic", "fallback_init", "freeze_previous")
                   if hasattr(args, name)]
-    if getattr(args, "eval_every", None) == 0:  # (the nets alone are evaluated with the periodic evaluation only)
+    # (the nets alone are evaluated with the periodic evaluation only; --eval-episodes, a number, is let be: a job
+    # script may turn the evaluation off by appending --eval-every 0 to its flags)
+    if getattr(args, "eval_every", None) == 0:
         rules += [(name, "has no effect with --eval-every 0 (training evaluates nothing)")
-                  for name in ("eval_members", "eval_deterministic", "eval_episodes", "eval_in_worker")
+                  for name in ("eval_members", "eval_deterministic", "eval_in_worker")
                   if hasattr(args, name)]
     for name, why in rules:
         # (a switch turned off, `--no-eval-members`, asks for nothing the run would not do: a job script may spell

@@ -531,7 +531,7 @@ MUTATIONS += [
              "Categorical(logits=logits, validate_args=False)", "Categorical(logits=logits)",
              ("tests/test_bad_input.py::test_a_diverging_discrete_run_stops_in_one_line",)),
     Mutation("idle flags: the eval flags of a run that evaluates nothing accepted", "cascade_plumbing/runs.py",
-             'for name in ("eval_members", "eval_deterministic", "eval_episodes", "eval_in_worker")',
+             'for name in ("eval_members", "eval_deterministic", "eval_in_worker")',
              'for name in ()', ("tests/test_bad_input.py::test_flags_a_training_run_cannot_act_on_are_refused",)),
     Mutation("sweep: the last LR cycle of a scaled budget cut short", "sweep.py",
              "    cycles = whole_lr_cycles(out)", "    cycles = 0",

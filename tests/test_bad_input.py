@@ -244,7 +244,6 @@ IDLE_FLAGS = [  # (script, flags, the line): flags a training run cannot act on,
     # (a fault hunt: accepted silently, the PPO scripts evaluate the nets alone with the periodic evaluation only)
     ("cascade_ppo_continuous", ["--eval-every", "0", "--eval-members"], "--eval-members has no effect with --eval-"),
     ("ppo_baseline", ["--eval-every", "0", "--eval-in-worker"], "--eval-in-worker has no effect with --eval-every 0"),
-    ("cascade_ppo_discrete", ["--eval-every", "0", "--eval-episodes", "0"], "--eval-episodes has no effect with"),
 ]
 
 
