@@ -496,6 +496,7 @@ def expand(args: Args) -> list[Run]:
         which = "the smallest that works" if smallest > args.scale else "the next one up that works"
         fail(f"--scale {args.scale:g} {problem}; use --scale {works:.2g} ({which}: every PPO budget at least one "
              "rollout, and in whole rollouts within 10% of its scaled value and of the others')")
+    refuse_one_setup_spelled_twice(scaled)
     runs, seen = [], set()
     # env by env, seed by seed: the runs one figure panel compares finish together
     for env_id in args.envs:
@@ -801,6 +802,25 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
             fail(f"'{template}' on {run.env_id}: {str(exc).removeprefix('error: ')}")
         finally:
             NEW_RUN_FLAGS.clear()
+
+
+def refuse_one_setup_spelled_twice(scaled: list[tuple[str, str, list[str], list[str]]]) -> None:
+    """Two templates of one label that differ only in spelling (`--k 300` and `--k=300`, `--env_id`) have two
+    identities (a run's identity is its command as written): the same runs would be trained twice. Refused."""
+    first: dict[tuple, list[str]] = {}
+    for label, script, flags, _ in scaled:
+        canonical = []
+        for token in flags:
+            if token.startswith("--"):
+                name, eq, value = token.partition("=")
+                canonical += [flag_name(name), value] if eq else [flag_name(name)]
+            else:
+                canonical.append(token)
+        key = (label, script, tuple(canonical))
+        if key in first and first[key] != flags:
+            fail(f"'{shlex.join([script, *first[key]])}' and '{shlex.join([script, *flags])}' are one setup "
+                 f"(label {label}) spelled two ways, whose runs would be trained twice; give it once")
+        first.setdefault(key, flags)
 
 
 def refuse_repeated_list_flags(argv: list[str]) -> None:

@@ -223,6 +223,8 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--preset", "sac", "--backend", "ray", "--workers", "3"], "--workers 3 applies to --backend local "
               "only (Ray places runs by --cpus-per-run); use --cpus-per-run, or leave it out"),
              (["--preset", "sac", "--wandb-group", "g"], "--wandb-group g applies with --track only; add --track"),
+             (["--command", "cascade_sac.py --k 300 --exp-name t", "cascade_sac.py --k=300 --exp-name t"],
+              "'cascade_sac.py --k 300' and 'cascade_sac.py --k=300' are one setup (label t) spelled two ways"),
              (["--preset", "sac", "--python", str(tmp_path / "nope")], "is not an executable (a path, or a name"),
              (["--preset", "sac", "--python", "no-such-python3"], "is not an executable (a path, or a name"),
              (["--preset", "sac", "--sweep-dir", os.path.join(__file__, "sub")], f"{__file__} is a file, not a folder")]
