@@ -601,8 +601,9 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
             run_dir = this_run_dir(checkpoint)
             rates = " / ".join(f"--{name.replace('_', '-')}" for name in ("learning_rate", "policy_lr", "q_lr")
                                if hasattr(args, name))
+            kept = os.path.join(run_dir, CHECKPOINT_NAME) if run_dir else ""  # ("": no run folder yet)
             fail(f"a value overflowed float32 ({str(exc).splitlines()[0]}), e.g. a learning rate too large for it; "
-                 f"{non_finite_advice(os.path.join(run_dir or '', CHECKPOINT_NAME), rates)}")
+                 f"{non_finite_advice(kept, rates)}")
         refused = None if isinstance(exc, SystemExit) else refused_write(exc)
         if refused is not None:  # a folder made read-only, a file of the run whose permissions changed, a disk error
             end_env_workers()
