@@ -29,7 +29,7 @@ from .evaluation import EvaluationEnvs, open_saved_model, save_video_of_one_epis
 from .fast import plain_fused_adam
 from .record import RunRecord
 from .replay import ReplayBuffer, ReplayFiles, available_memory, buffer_capacity, store_transition
-from .runs import CHECKPOINT_ON_STOP, STOP_REQUESTED, forget_stops, stop_after_checkpoint
+from .runs import CHECKPOINT_ON_STOP, STOP_REQUESTED, drop_stop_requests, forget_stops, stop_after_checkpoint
 from .tracking import log_new_videos
 
 
@@ -334,7 +334,7 @@ class OffPolicyRun(RunRecord):
                                   f"SPS={int(self.sps(global_step))}")
 
     def close(self, global_step: int) -> None:
-        forget_stops()
+        drop_stop_requests()
         if self.evaluator is not None:
             self.evaluator.close()
         self.envs.close()

@@ -210,6 +210,8 @@ def stop_signal(signum, frame) -> None:
     A stop that comes again within SAME_STOP_S of the last one is the same stop: a job scheduler signals every
     process of a job and sweep.py passes its own stop on, so a run gets two at once; as a second stop it would
     end a SAC or DDPG run before its checkpoint, or interrupt a stopping run's last line with a traceback."""
+    if ENDING_BY_STOP:  # the run is ending by a stop already (its last line and exit follow): nothing to add; raised
+        return  # again, it would print a traceback from wherever the ending run is (an atexit callback, say)
     now = time.monotonic()
     if LAST_STOP and now - LAST_STOP[0] < SAME_STOP_S:
         return
@@ -224,15 +226,23 @@ def stop_signal(signum, frame) -> None:
         STOP_REQUESTED.append(signum)  # (a second stop before that ends it at once, at its last checkpoint)
         return
     STOPPED_BY.append(signum)
+    ENDING_BY_STOP.append(True)
     raise KeyboardInterrupt
 
 
 def forget_stops() -> None:
     """No run of this process checkpoints on a stop, and none is asked for (at the start of a run or of --evaluate:
     what an earlier run in the same process left, a notebook's or a test's, must not defer this one's stop)."""
+    drop_stop_requests()
+    LAST_STOP.clear()
+    ENDING_BY_STOP.clear()
+
+
+def drop_stop_requests() -> None:
+    """At the end of a run (finished, failed or stopped): it no longer checkpoints on a stop. What tells a repeated
+    stop from a new one stays until the next run starts: the stop that ended this run may arrive twice."""
     CHECKPOINT_ON_STOP.clear()
     STOP_REQUESTED.clear()
-    LAST_STOP.clear()
 
 
 def stop_after_checkpoint(global_step: int) -> None:
@@ -240,6 +250,7 @@ def stop_after_checkpoint(global_step: int) -> None:
     if STOP_REQUESTED and not FINISHING:
         SAVED_AT_STOP[:] = [global_step]
         STOPPED_BY.append(STOP_REQUESTED.pop())
+        ENDING_BY_STOP.append(True)
         raise KeyboardInterrupt
 
 
@@ -253,6 +264,7 @@ SAME_STOP_S = 1.0  # a stop's checkpoint takes well under this (SAC, Hopper, 1M 
 CHECKPOINT_ON_STOP: list[bool] = []
 STOP_REQUESTED: list[int] = []
 SAVED_AT_STOP: list[int] = []
+ENDING_BY_STOP: list[bool] = []  # a stop has ended the run (raised KeyboardInterrupt): a stop after it changes nothing
 FINAL: list[Callable[[str, dict], bool]] = []  # run_main's test of whether a checkpoint is the end of the run
 FINISHING: list[bool] = []  # [whether a stop was ignored] once the final checkpoint is being written
 
@@ -584,7 +596,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     except BaseException as exc:
         FINAL.clear()  # this run's test; a later train() in the same process (a notebook, the tests) has its own
         FINISHING.clear()
-        forget_stops()
+        drop_stop_requests()
         finish_wandb(exit_code=1)  # an error or a stop: the W&B run ends as failed, before the last line
         if isinstance(exc, KeyboardInterrupt):
             end_env_workers()

@@ -218,7 +218,7 @@ def test_a_stop_before_the_first_step_or_a_second_stop_ends_the_run_at_once():
     with pytest.raises(KeyboardInterrupt):  # no step taken yet
         runs.stop_signal(signal.SIGINT, None)
     runs.STOPPED_BY.clear()
-    a_second_later()
+    runs.forget_stops()  # (the next run)
     runs.CHECKPOINT_ON_STOP.append(True)
     assert runs.stop_signal(signal.SIGINT, None) is None and runs.STOP_REQUESTED == [signal.SIGINT]
     with pytest.raises(KeyboardInterrupt):
@@ -246,6 +246,33 @@ def test_the_same_stop_delivered_twice_is_one_stop():
     except KeyboardInterrupt:
         pytest.fail("the repeated stop interrupted the stopping run")
     assert runs.STOPPED_BY == [signal.SIGTERM]
+
+
+@pytest.mark.parametrize("deferred", [False, True], ids=["at-once", "after-its-checkpoint"])
+def test_a_stop_that_comes_while_a_stopped_run_ends_changes_nothing(deferred):
+    """The stop's repeat may come after the stopped run's end had cleared its stop bookkeeping (a small SAC run
+    writes its checkpoint at the stop and ends within the 10 ms between a scheduler's two signals), or a person's
+    second Ctrl-C a few seconds into the ending: raised again, it printed a traceback from an atexit callback after
+    the stop's line (a fresh-clone CI run saw it)."""
+    if deferred:
+        runs.CHECKPOINT_ON_STOP.append(True)
+        runs.stop_signal(signal.SIGTERM, None)
+        with pytest.raises(KeyboardInterrupt):
+            runs.stop_after_checkpoint(614)
+    else:
+        with pytest.raises(KeyboardInterrupt):
+            runs.stop_signal(signal.SIGTERM, None)
+    runs.drop_stop_requests()  # the run's end: offpolicy's close, run_main's except
+    runs.LAST_STOP[0] -= 10 * runs.SAME_STOP_S  # (and seconds later)
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        try:
+            runs.stop_signal(signum, None)
+        except KeyboardInterrupt:  # (not pytest's own stop)
+            pytest.fail("a stop during the stopped run's end raised again")
+    assert runs.STOPPED_BY == [signal.SIGTERM]
+    runs.forget_stops()  # a run started next acts on a stop again
+    with pytest.raises(KeyboardInterrupt):
+        runs.stop_signal(signal.SIGINT, None)
 
 
 @pytest.mark.parametrize("algo", ["sac", "ddpg"])
@@ -468,7 +495,9 @@ def test_sigterm_then_resume_on_the_command_line(algo, signals, tmp_path):
     assert len(lines) == 1 and lines[0].startswith("stopped by SIGTERM: a checkpoint was written at the stop"), err
     run_dir = only_run_dir(tmp_path / "b")
     step = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)["global_step"]
-    assert 600 < step < 1200 and f"global_step={step}" in lines[0] and f"--resume {run_dir}" in lines[0]
+    # (600: the stop came while the checkpoint of iteration 1's end was written, after its iteration_1.pt: that one
+    # is the checkpoint at the stop, as a loaded host showed)
+    assert 600 <= step < 1200 and f"global_step={step}" in lines[0] and f"--resume {run_dir}" in lines[0]
     again = subprocess.run([sys.executable, os.path.join(ROOT, script), "--resume", run_dir],
                            capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert again.returncode == 0, again.stderr[-2000:]
