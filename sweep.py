@@ -41,7 +41,7 @@ import time
 import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import tyro
@@ -208,10 +208,25 @@ class Run:
     cadence: list[str] = field(default_factory=list)
     """--checkpoint-every for a scaled run whose template leaves the script's default (not part of its identity:
     it does not change what the run computes, and a resume may change it)"""
+    written: list[str] | None = None
+    """the flags as the template wrote them, where that differs from `flags` (`--k=300`): the identity sweeps made
+    before flags were spelled one way gave the run (its folder there is used; see `as_in`)"""
+
+    def as_in(self, sweep_dir: str) -> Run:
+        """This run, or the same run under the identity of the template's own spelling where `sweep_dir` holds that
+        one's folder or completion marker and not this one's (a sweep made before flags were spelled one way)."""
+        if self.written is None:
+            return self
+        earlier = replace(self, flags=self.written, written=None)
+        def made(run: Run) -> bool:
+            return (os.path.exists(os.path.join(sweep_dir, "done", f"{run.run_id}.json"))
+                    or os.path.isdir(os.path.join(sweep_dir, "runs", run.run_id)))
+        return earlier if made(earlier) and not made(self) else self
 
     @property
     def setup_hash(self) -> str:
-        """Digest of the run's full command (script, flags after scaling, env, seed): its identity."""
+        """Digest of the run's full command (script, flags after scaling and in one spelling, env, seed): its
+        identity."""
         command = shlex.join([self.script, *self.flags, "--env-id", self.env_id, "--seed", str(self.seed)])
         return hashlib.sha1(command.encode()).hexdigest()[:10]
 
@@ -258,6 +273,19 @@ def flag_name(flag: str) -> str:
     (tyro accepts both spellings)."""
     name = flag.partition("=")[0]
     return "--" + name[2:].replace("_", "-") if name.startswith("--") else name
+
+
+def canonical_flags(flags: list[str]) -> list[str]:
+    """Flags in one spelling, `--k=300` -> `--k 300` and `--env_id` -> `--env-id` (tyro reads both alike): a run's
+    identity is its command, so one setup written two ways in two sweeps into one folder is one run, not two."""
+    out: list[str] = []
+    for token in flags:
+        if token.startswith("--"):
+            name, eq, value = token.partition("=")
+            out += [flag_name(name), value] if eq else [flag_name(name)]
+        else:
+            out.append(token)
+    return out
 
 
 def flag_value(flags: list[str], name: str) -> str | None:
@@ -488,22 +516,22 @@ def expand(args: Args) -> list[Run]:
             if flag_name(flag) in SWEEP_FLAGS:
                 fail(f"'{template}' sets {flag_name(flag)}, which the sweep sets for each run itself: give "
                      "env ids with --envs and seeds with --seeds, and the sweep folder with --sweep-dir")
-        template_flags, cadence, _, _ = scale_template(script, flags, args.scale, template)
-        scaled.append((label, script, template_flags, cadence))
+        template_flags, cadence, _, _ = scale_template(script, canonical_flags(flags), args.scale, template)
+        written = None if canonical_flags(flags) == flags else scale_template(script, flags, args.scale, template)[0]
+        scaled.append((label, script, template_flags, cadence, written))
     problem, smallest = scale_problem(templates, args.scale)
     if problem:
         works = a_scale_that_works(templates, max(smallest, args.scale))
         which = "the smallest that works" if smallest > args.scale else "the next one up that works"
         fail(f"--scale {args.scale:g} {problem}; use --scale {works:.2g} ({which}: every PPO budget at least one "
              "rollout, and in whole rollouts within 10% of its scaled value and of the others')")
-    refuse_one_setup_spelled_twice(scaled)
     runs, seen = [], set()
     # env by env, seed by seed: the runs one figure panel compares finish together
     for env_id in args.envs:
         for seed in seeds:
-            for label, script, flags, cadence in scaled:
-                run = Run(label, script, flags, env_id, seed, cadence)
-                if run.run_id not in seen:  # presets share some runs (e.g. standard Cascade)
+            for label, script, flags, cadence, written in scaled:
+                run = Run(label, script, flags, env_id, seed, cadence, written)
+                if run.run_id not in seen:  # presets share some runs (e.g. standard Cascade), spellings one setup
                     seen.add(run.run_id)
                     runs.append(run)
     return runs
@@ -804,25 +832,6 @@ def check_templates(todo: list[tuple[Run, list[str], str, str]]) -> None:
             NEW_RUN_FLAGS.clear()
 
 
-def refuse_one_setup_spelled_twice(scaled: list[tuple[str, str, list[str], list[str]]]) -> None:
-    """Two templates of one label that differ only in spelling (`--k 300` and `--k=300`, `--env_id`) have two
-    identities (a run's identity is its command as written): the same runs would be trained twice. Refused."""
-    first: dict[tuple, list[str]] = {}
-    for label, script, flags, _ in scaled:
-        canonical = []
-        for token in flags:
-            if token.startswith("--"):
-                name, eq, value = token.partition("=")
-                canonical += [flag_name(name), value] if eq else [flag_name(name)]
-            else:
-                canonical.append(token)
-        key = (label, script, tuple(canonical))
-        if key in first and first[key] != flags:
-            fail(f"'{shlex.join([script, *first[key]])}' and '{shlex.join([script, *flags])}' are one setup "
-                 f"(label {label}) spelled two ways, whose runs would be trained twice; give it once")
-        first.setdefault(key, flags)
-
-
 def refuse_repeated_list_flags(argv: list[str]) -> None:
     """A list flag given twice (`--seeds 1 --seeds 2`) keeps only its last values in tyro: a grid silently smaller
     than the one asked for. Refused in one line; the values go after one flag."""
@@ -887,6 +896,7 @@ def sweep() -> None:
     track_dir = os.path.join(sweep_dir, "runs")
     tracking = tracking_flags(args, sweep_dir)
     todo, skipped = [], 0
+    runs = [run.as_in(sweep_dir) for run in runs]
     for run in runs:
         marker = os.path.join(sweep_dir, "done", f"{run.run_id}.json")
         if os.path.exists(marker):

@@ -74,12 +74,13 @@ def test_scale_scales_the_checkpoint_cadence():
     # a cadence in the template scales in place; 0 (checkpoints at iteration ends only) stays 0
     assert one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 50000", 0.1).flags[2:4] == \
         ["--checkpoint-every", "5000"]
-    assert one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every=50000", 0.01).flags[2] == \
-        "--checkpoint-every=2048"
+    spelled = one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every=50000", 0.01)
+    assert spelled.flags[2:4] == ["--checkpoint-every", "2048"] and spelled.written[2] == "--checkpoint-every=2048"
     explicit = one("ppo_baseline.py --total-timesteps 6000000 --checkpoint-every 0", 0.01)
     assert explicit.flags[2:4] == ["--checkpoint-every", "0"] and explicit.cadence == []
-    assert one("ppo_baseline.py --total-timesteps=6000000 --eval-every 0", 0.01).flags == \
-        ["--total-timesteps=59392", "--eval-every", "0"]  # evaluation off stays off
+    off = one("ppo_baseline.py --total-timesteps=6000000 --eval-every 0", 0.01)  # evaluation off stays off
+    assert off.flags == ["--total-timesteps", "59392", "--eval-every", "0"]
+    assert off.written == ["--total-timesteps=59392", "--eval-every", "0"]
     # Fig. 3's LR cycle shrinks with the run it divides (6 cycles either way)
     # (not without the cyclic schedule: there --cycle-steps is refused by the script)
     assert one("ppo_baseline.py --total-timesteps 6000000 --cycle-steps 1000000 --eval-every 0", 0.01).flags == \
@@ -88,7 +89,7 @@ def test_scale_scales_the_checkpoint_cadence():
     # own the total was 59,392 steps, the last cycle cut short
     for lr in (["--lr-schedule", "cyclic"], ["--lr-schedule=cyclic"]):
         flags = one(shlex.join(["ppo_baseline.py", "--total-timesteps=6000000", "--cycle-steps", "1000000", *lr]),
-                    0.01).flags
+                    0.01).written
         assert flags[:3] == ["--total-timesteps=61440", "--cycle-steps", "10240"], flags
     assert sweep.flag_value(one("ppo_baseline.py --lr-schedule cyclic --eval-every 0", 0.01).flags,
                             "--total-timesteps") == str(6 * 10240)  # the defaults: 6M steps, cycles of 1M
@@ -158,7 +159,9 @@ def test_scale_keeps_budgets_equal_and_scales_the_defaults():
                             "--eval-every") == "500"
     assert one("cascade_sac.py --eval-every 500 --checkpoint-every 700", 0.5).flags[3] == "700"
     # tyro's other spelling (--total_timesteps) is the same flag: scaled, not overridden by a scaled default
-    flags = one("ppo_baseline.py --total_timesteps 2000000", 0.01).flags
+    run = one("ppo_baseline.py --total_timesteps 2000000", 0.01)
+    assert run.flags[:2] == ["--total-timesteps", "20480"]  # (the identity: one spelling)
+    flags = run.written  # (the identity a sweep folder of an earlier version gave it: as written)
     assert flags[:2] == ["--total_timesteps", "20480"] and sweep.flag_value(flags, "--total-timesteps") == "20480"
     assert "--total-timesteps" not in flags
     # --exp-name=NAME is the label too (it took the next flag as the label)
@@ -223,8 +226,6 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--preset", "sac", "--backend", "ray", "--workers", "3"], "--workers 3 applies to --backend local "
               "only (Ray places runs by --cpus-per-run); use --cpus-per-run, or leave it out"),
              (["--preset", "sac", "--wandb-group", "g"], "--wandb-group g applies with --track only; add --track"),
-             (["--command", "cascade_sac.py --k 300 --exp-name t", "cascade_sac.py --k=300 --exp-name t"],
-              "'cascade_sac.py --k 300' and 'cascade_sac.py --k=300' are one setup (label t) spelled two ways"),
              (["--preset", "sac", "--python", str(tmp_path / "nope")], "is not an executable (a path, or a name"),
              (["--preset", "sac", "--python", "no-such-python3"], "is not an executable (a path, or a name"),
              (["--preset", "sac", "--sweep-dir", os.path.join(__file__, "sub")], f"{__file__} is a file, not a folder")]
@@ -267,6 +268,38 @@ def test_scale_works_for_sac_and_ddpg(tmp_path):
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     assert len(os.listdir(tmp_path / "done")) == 1
+
+
+def test_one_setup_spelled_two_ways_is_one_run_in_one_or_two_sweeps(tmp_path, capsys):
+    """A run's identity is its command: `--k=300` and `--k 300` (or `--learning_starts`) were two setups, so a second
+    sweep into the same folder trained the same runs again. Flags are read in one spelling now; a folder made before
+    that (runs under the template's own spelling) is still found, finished or half-way."""
+    def dry_run(*templates):
+        argv = ["sweep.py", "--envs", "Pendulum-v1", "--sweep-dir", str(tmp_path), "--dry-run", "--command", *templates]
+        with mock.patch.object(sys, "argv", argv):
+            sweep.sweep()
+        return capsys.readouterr().out
+
+    spellings = ("cascade_sac.py --k 300 --learning-starts 100 --exp-name t",
+                 "cascade_sac.py --k=300 --learning_starts=100 --exp-name t")
+    both = dry_run(*spellings)
+    assert "# 1 runs to do, 0 already finished" in both, both
+    ids = [line.split()[1].rstrip(":") for line in both.splitlines() if line.startswith("# Pendulum")]
+    assert len(ids) == 1 and " --k 300 --learning-starts 100 " in both, both
+    os.makedirs(tmp_path / "done")
+    open(tmp_path / "done" / f"{ids[0]}.json", "w").close()
+    for template in spellings:  # a later sweep in either spelling finds the run finished
+        assert "# 0 runs to do, 1 already finished" in dry_run(template)
+    # a folder of an earlier version: its runs were named after the command as written
+    earlier = sweep.Run("t", "cascade_sac.py", shlex.split(spellings[1])[1:-2], "Pendulum-v1", 1)
+    assert earlier.run_id != ids[0]
+    os.rename(tmp_path / "done" / f"{ids[0]}.json", tmp_path / "done" / f"{earlier.run_id}.json")
+    assert "# 0 runs to do, 1 already finished" in dry_run(spellings[1])
+    assert "# 1 runs to do, 0 already finished" in dry_run(spellings[0])  # (as that version did)
+    os.remove(tmp_path / "done" / f"{earlier.run_id}.json")
+    os.makedirs(tmp_path / "runs" / earlier.run_id / "Pendulum-v1__t__1__1")
+    half_way = dry_run(spellings[1])
+    assert f"# {earlier.run_id}:" in half_way and "--k=300" in half_way, half_way  # its folder, its command
 
 
 def test_paper_settings_in_presets():
