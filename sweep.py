@@ -746,7 +746,7 @@ def run_ray(todo: list[tuple[Run, list[str], str, str]], args: Args, tracker: Tr
 
 
 def interrupt(signum, frame):
-    """Ctrl-C or SIGTERM: the sweep stops. A repeated one while it stops its runs passes on to them: a SAC or DDPG
+    """Ctrl-C, SIGTERM or SIGHUP: the sweep stops. A repeated one while it stops its runs passes on to them: a SAC or DDPG
     run, which writes a checkpoint at its next step when stopped, then stops at once."""
     if STOP:
         stop_running(hold_lock=False)
@@ -760,6 +760,8 @@ def main() -> None:
     # is inherited as ignored): running runs are stopped, finished ones keep their markers.
     signal.signal(signal.SIGINT, interrupt)
     signal.signal(signal.SIGTERM, interrupt)
+    if signal.getsignal(signal.SIGHUP) == signal.SIG_DFL:  # a closed terminal (not under nohup)
+        signal.signal(signal.SIGHUP, interrupt)
     try:
         sweep()
     except KeyboardInterrupt:  # stopped before any run started
@@ -936,6 +938,8 @@ def sweep() -> None:
     # the work is over: a stop from here on changes nothing (the summary is printed in full)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if signal.getsignal(signal.SIGHUP) is interrupt:
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
     stopped = tracker.stopped + list(tracker.active.values())  # Ray: tasks cancelled while running or queued
     not_started = len(todo) - tracker.done - len(tracker.failed) - len(stopped)
     if STOP and (stopped or not_started):

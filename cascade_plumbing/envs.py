@@ -238,6 +238,7 @@ def make_env(env_id: str, index: int = 0, video: bool = False, action_wrapper: t
     def thunk() -> gym.Env:
         if multiprocessing.current_process().name != "MainProcess":  # a --num-envs worker: stops are for training
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)  # (the training process ends its workers on either)
             signal.signal(signal.SIGTERM, signal.SIG_DFL)  # not the training process's handler it was forked with
         env = gym.make(env_id, render_mode="rgb_array") if video else gym.make(env_id)
         if video:

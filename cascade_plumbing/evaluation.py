@@ -31,6 +31,7 @@ def evaluation_worker(conn, make_context: Callable[[], Any], work: Callable[[Any
     it stops at its checkpoint, or finishes after the final one), ending with the training process (`parent`)."""
     own_group(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # (so is a closed terminal's SIGHUP)
     torch.set_num_threads(1)
     context = make_context()
     try:

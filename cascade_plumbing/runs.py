@@ -204,7 +204,7 @@ def resumed_args(args: Any, checkpoint: dict, given: set[str]) -> Any:
 
 
 def stop_signal(signum, frame) -> None:
-    """SIGTERM and Ctrl-C stop a run (the exit code tells them apart); a SAC or DDPG run that has taken a step
+    """SIGTERM, Ctrl-C and SIGHUP stop a run (the exit code tells them apart: 143, 130, 129); a SAC or DDPG run that has taken a step
     writes a checkpoint at its next one first (CHECKPOINT_ON_STOP). Once the run's final checkpoint is being
     written, a stop lets the run finish instead (its last evaluation and logs; the run is complete then).
     A stop that comes again within SAME_STOP_S of the last one is the same stop: a job scheduler signals every
@@ -228,6 +228,17 @@ def stop_signal(signum, frame) -> None:
     STOPPED_BY.append(signum)
     ENDING_BY_STOP.append(True)
     raise KeyboardInterrupt
+
+
+def handle_stops() -> None:
+    """SIGTERM, Ctrl-C and SIGHUP (a closed terminal or ssh session; it ended a run silently, losing the steps since
+    its last checkpoint) stop the run through stop_signal; Ctrl-C and SIGHUP not where they are ignored (`cmd &`,
+    nohup)."""
+    signal.signal(signal.SIGTERM, stop_signal)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, stop_signal)
+    if signal.getsignal(signal.SIGHUP) == signal.SIG_DFL:
+        signal.signal(signal.SIGHUP, stop_signal)
 
 
 def forget_stops() -> None:
@@ -531,9 +542,7 @@ def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], An
     check_seed(args.seed)
     forget_stops()
     refuse_another_scripts_checkpoint(load_checkpoint(args.evaluate, reader_flag="--evaluate"), type(args), "evaluate")
-    signal.signal(signal.SIGTERM, stop_signal)
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, stop_signal)
+    handle_stops()
     try:
         evaluate_saved(args)
     except KeyboardInterrupt:
@@ -578,9 +587,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
                   "nothing to resume")
             return
     forget_stops()
-    signal.signal(signal.SIGTERM, stop_signal)
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where it is ignored (nohup, `cmd &`)
-        signal.signal(signal.SIGINT, stop_signal)
+    handle_stops()
     # the checkpoint a resume would find finished (the same test): from its write on, a stop lets the run finish
     FINAL[:] = [lambda path, payload: finished(type(args)(**payload["args"]), {**payload, "path": path})]
     if not getattr(threading.excepthook, "quiet_writer_threads", False):
@@ -630,6 +637,8 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     # interpreter exit Python resets its own handlers to the default, which would die by the signal silently).
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if signal.getsignal(signal.SIGHUP) is stop_signal:
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
     FINAL.clear()
     FINISHING.clear()
     forget_stops()

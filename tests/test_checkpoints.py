@@ -247,12 +247,19 @@ def test_resume_bad_input(finished_run, tmp_path):
     above = os.path.dirname(run_dir)
     cases += [(["--resume", above], f"; the run folder {run_dir} below it has one: pass that"),
               (["--evaluate", above], f"; the run folder {run_dir} below it has one: pass that")]
+    # ... but a mistyped run folder (another seed's name) is not "above" its siblings: none is named (a fault hunt:
+    # the run beside it was offered as "below it")
+    typo = run_dir.replace("__1__", "__2__")
+    assert typo != run_dir
+    cases += [([flag, typo], f"no checkpoint at {typo}: no such folder; pass a run folder holding checkpoint.pt or "
+                             "a checkpoint file") for flag in ("--resume", "--evaluate")]
     for i, (extra, message) in enumerate(cases):
         if i == 0:  # one case through a real interpreter: stderr and the exit code
             line = error_line(run_script("cascade_ppo_continuous.py", *extra))
         else:
             line = error_line_in_process("cascade_ppo_continuous.py", *extra)
         assert message in line, extra
+        assert extra[1] != typo or line.endswith(message), line
     assert digest(run_dir) == before
 
 

@@ -466,12 +466,15 @@ def test_sigkill_then_resume_on_the_command_line(algo, tmp_path):
     assert_same_saved_nets(algo, only_run_dir(tmp_path / "a"), run_dir)
 
 
-@pytest.mark.parametrize("algo,signals", [("sac", 1), ("sac", 2)], ids=["sac", "sac-twice"])
-def test_sigterm_then_resume_on_the_command_line(algo, signals, tmp_path):
+@pytest.mark.parametrize("algo,signals,signum", [("sac", 1, signal.SIGTERM), ("sac", 2, signal.SIGTERM),
+                                                 ("sac", 1, signal.SIGHUP)], ids=["sac", "sac-twice", "sac-sighup"])
+def test_sigterm_then_resume_on_the_command_line(algo, signals, signum, tmp_path):
     """As a cluster's preemption or a sweep's stop meets a run: SIGTERM in the middle of an iteration, with no
     periodic checkpoint since its start (--checkpoint-every 0). The run writes one at the stop, says so in one line
     (exit 143), and `--resume` ends with the same nets as a run never stopped. Twice at once (a scheduler's SIGTERM
-    to every process of the job, and a sweep passing on its own): the same."""
+    to every process of the job, and a sweep passing on its own): the same. SIGHUP (the terminal or ssh session of a
+    run started without nohup closed): the same, exit 129 (a fault hunt: it ended the run silently, losing the
+    steps since its last checkpoint)."""
     script = f"cascade_{algo}.py"
     flags = ["--env-id", "Pendulum-v1", "--n", "2", "--k", "600", "--learning-starts", "100", "--batch-size", "32",
              "--eval-every", "0", "--checkpoint-every", "0", "--quiet"]
@@ -479,7 +482,8 @@ def test_sigterm_then_resume_on_the_command_line(algo, signals, tmp_path):
                            capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert whole.returncode == 0, whole.stderr[-2000:]
     proc = subprocess.Popen([sys.executable, os.path.join(ROOT, script), *flags, "--track-dir", str(tmp_path / "b")],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))  # (not nohup's)
     deadline = time.time() + 600
     while not list((tmp_path / "b").glob("*/iteration_1.pt")):  # the end of iteration 1 (step 600)
         if proc.poll() is not None or time.time() > deadline:
@@ -487,12 +491,13 @@ def test_sigterm_then_resume_on_the_command_line(algo, signals, tmp_path):
             pytest.fail(f"the run ended before it was stopped: {proc.stderr.read()[-2000:]}")
         time.sleep(0.05)
     for _ in range(signals):  # the second one 10 ms later: as the same signal, one pending, the kernel merges them
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signum)
         time.sleep(0.01)
     err = proc.communicate(timeout=120)[1]
-    assert proc.returncode == 143, err[-2000:]
+    assert proc.returncode == 128 + signum, err[-2000:]
     lines = [line.strip("\r") for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("stopped by SIGTERM: a checkpoint was written at the stop"), err
+    name = signal.Signals(signum).name
+    assert len(lines) == 1 and lines[0].startswith(f"stopped by {name}: a checkpoint was written at the stop"), err
     run_dir = only_run_dir(tmp_path / "b")
     step = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)["global_step"]
     # (600: the stop came while the checkpoint of iteration 1's end was written, after its iteration_1.pt: that one
