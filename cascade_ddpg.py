@@ -448,7 +448,8 @@ def train(args: Args, checkpoint: dict | None = None,
         actor_optimizer = make_adam(list(actor.parameters()), args.learning_rate, args.adam_eps)
         if mid_iteration:
             load_optimizer(actor_optimizer, checkpoint["actor_optimizer"])
-        run.iteration_start(iteration, actor.size, count_parameters(actor, qf), "actor + critic", global_step)
+        run.iteration_start(iteration, actor.size, count_parameters(actor, qf), "actor + critic", global_step,
+                            continuing=mid_iteration)
         if on_iteration_start is not None:
             on_iteration_start({"iteration": iteration, "actor": actor, "target_actor": target_actor, "qf": qf,
                                 "qf_target": qf_target, "q_optimizer": q_optimizer,

@@ -507,7 +507,8 @@ def train(args: Args, checkpoint: dict | None = None,
     if checkpoint is not None and args.start_full:
         critic = run.saved_critic(checkpoint, device)  # --start-full keeps one critic for the whole run
     for iteration in range(start_iteration, args.n + 1):
-        if checkpoint is not None and iteration == start_iteration and start_update > 1:
+        continuing = checkpoint is not None and iteration == start_iteration and start_update > 1
+        if continuing:
             critic, flat_params, optimizer = run.restore_mid_iteration(checkpoint, actor, device)
         else:
             # --- a new Cascade iteration: new base net, fresh critic, fresh Adam, fresh LR cycle ---
@@ -519,7 +520,7 @@ def train(args: Args, checkpoint: dict | None = None,
                 critic = make_critic(obs_dim).to(device)
             flat_params = share_one_buffer([*actor.parameters(), *critic.parameters()])
             optimizer = make_optimizer(actor, critic, flat_params, args.learning_rate)
-        run.iteration_start(iteration, actor, critic, global_step)
+        run.iteration_start(iteration, actor, critic, global_step, continuing)
         if on_iteration_start is not None:
             on_iteration_start(
                 {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}
@@ -749,12 +750,15 @@ class RunLog(RunRecord):
         return critic, flat_params, optimizer
 
     # --- logging ---
-    def iteration_start(self, iteration: int, actor: CascadeActor, critic: nn.Module, global_step: int) -> None:
+    def iteration_start(self, iteration: int, actor: CascadeActor, critic: nn.Module, global_step: int,
+                        continuing: bool) -> None:
+        """`continuing`: a resume in the middle of the iteration, whose start is logged already."""
         n_params = count_parameters(actor, critic)
-        self.writer.add_scalar("cascade/size", actor.size, global_step)
-        self.writer.add_scalar("cascade/parameters", n_params, global_step)
-        self.progress.message(f"iteration {iteration}/{self.args.n}: {actor.size} base net(s), {n_params} parameters "
-                              "(actor + critic)")
+        if not continuing:
+            self.writer.add_scalar("cascade/size", actor.size, global_step)
+            self.writer.add_scalar("cascade/parameters", n_params, global_step)
+        how = f"continues at global_step={global_step}" if continuing else f"{actor.size} base net(s)"
+        self.progress.message(f"iteration {iteration}/{self.args.n}: {how}, {n_params} parameters (actor + critic)")
 
     def update_done(self, global_step: int, optimizer: torch.optim.Optimizer, parts: dict,
                     old_approx_kl: torch.Tensor, approx_kl: torch.Tensor, ratios: torch.Tensor,

@@ -464,7 +464,8 @@ def train(args: Args, checkpoint: dict | None = None,
     if checkpoint is not None and args.start_full:
         critic = saved_critic(checkpoint, obs_dim, device)  # --start-full keeps one critic for the whole run
     for iteration in range(start_iteration, args.n + 1):
-        if checkpoint is not None and iteration == start_iteration and start_update > 1:  # resumed mid-iteration
+        continuing = checkpoint is not None and iteration == start_iteration and start_update > 1
+        if continuing:  # resumed mid-iteration
             critic = saved_critic(checkpoint, obs_dim, device)
             optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
             checkpoints.load_optimizer(optimizer, checkpoint["optimizer"])
@@ -480,9 +481,11 @@ def train(args: Args, checkpoint: dict | None = None,
         size = actor.size
         params = [param for group in optimizer.param_groups for param in group["params"]]
         n_params = count_parameters(actor, critic)
-        writer.add_scalar("cascade/size", size, global_step)
-        writer.add_scalar("cascade/parameters", n_params, global_step)
-        say(f"iteration {iteration}/{args.n}: {size} base net(s), {n_params} parameters (actor + critic)")
+        if not continuing:  # (a resume in the middle of the iteration: its start is logged already)
+            writer.add_scalar("cascade/size", size, global_step)
+            writer.add_scalar("cascade/parameters", n_params, global_step)
+        how = f"continues at global_step={global_step}" if continuing else f"{size} base net(s)"
+        say(f"iteration {iteration}/{args.n}: {how}, {n_params} parameters (actor + critic)")
         if on_iteration_start is not None:
             on_iteration_start(
                 {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}

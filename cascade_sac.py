@@ -479,7 +479,8 @@ def train(args: Args, checkpoint: dict | None = None,
         actor_optimizer = make_adam(list(actor.parameters()), args.policy_lr)
         if mid_iteration:
             load_optimizer(actor_optimizer, checkpoint["actor_optimizer"])
-        run.iteration_start(iteration, actor.size, count_parameters(actor, qf), "actor + critics", global_step)
+        run.iteration_start(iteration, actor.size, count_parameters(actor, qf), "actor + critics", global_step,
+                            continuing=mid_iteration)
         if on_iteration_start is not None:
             on_iteration_start({"iteration": iteration, "actor": actor, "qf": qf, "qf_target": qf_target,
                                 "q_optimizer": q_optimizer, "actor_optimizer": actor_optimizer,

@@ -141,6 +141,10 @@ def test_resume_mid_iteration_gives_identical_parameters(tmp_path):
     resumed = resume_from(cpc, tmp_path / "mid.pt", tmp_path / "b")
     for a, b in zip(full["actor"].parameters(), resumed["actor"].parameters()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # the iteration's start was logged before the checkpoint: the resume logs no second point of it at step 1536
+    scalars = read_scalars(resumed["run_dir"])
+    assert "cascade/parameters" not in scalars, scalars["cascade/parameters"]
+    assert 1536 not in [step for step, _ in scalars["cascade/size"]]
 
 
 @pytest.mark.parametrize("script", ["cascade_ppo_continuous", "cascade_ppo_discrete"])

@@ -333,6 +333,10 @@ def test_cascade_resume_gives_identical_parameters(cartpole_run, tmp_path, start
     original = read_scalars(run_dir)["eval/episodic_return"]
     again = read_scalars(resumed["run_dir"])["eval/episodic_return"]
     assert again == [(s, v) for s, v in original if s > first["global_step"]]
+    # ... and logs the net count where an iteration starts only (from iteration_1.pt: iteration 2's start, at 1024;
+    # mid-iteration 2: none, it started before the checkpoint)
+    starts = [step for step, _ in read_scalars(resumed["run_dir"]).get("cascade/parameters", [])]
+    assert starts == ([1024] if start != "mid" else []), starts
 
 
 def test_cascade_evaluate_and_resume_errors(cartpole_run, tmp_path, capsys):
