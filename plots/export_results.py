@@ -50,8 +50,11 @@ class Args:
 
 def planned_steps(hparams: dict[str, str]) -> int | None:
     """The steps the run does, from its logged settings: whole rollout batches of n*k (Cascade scripts:
-    k // batch per iteration) or of total_timesteps (baselines)."""
+    k // batch per iteration) or of total_timesteps (baselines); n*k env steps for SAC and DDPG (one env, no
+    rollouts: their settings have a warm-up, learning_starts, and no num_steps)."""
     try:
+        if "learning_starts" in hparams and "num_steps" not in hparams:
+            return int(hparams["n"]) * int(hparams["k"])
         batch = int(hparams["num_envs"]) * int(hparams["num_steps"])
         if "total_timesteps" in hparams:
             return int(hparams["total_timesteps"]) // batch * batch

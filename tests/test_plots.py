@@ -610,6 +610,16 @@ def test_exported_runs_hold_what_the_figures_read(runs, tmp_path, capsys):
     capsys.readouterr()
     assert "nothing exported" in error_of(lambda: export_results.main(args))  # (it exited 0 with the note alone)
     assert "evaluated up to step 500,000 of 999,424 (unfinished)" in capsys.readouterr().err
+    # ... a SAC or DDPG run too (they log no rollout size: an unfinished one was exported as finished, a fault hunt)
+    for label, finished in (("cascade_sac", 1_000_000), ("cascade_ddpg", 2_000_000)):
+        partial = write_fake_run(tmp_path / "offpolicy", f"Hopper-v4__{label}__1__1700000000", [0, 1_000_000, finished],
+                                 hparams={"n": 4, "k": 500_000, "learning_starts": 5000, "seed": 1})
+        export = export_results.Args(runs=[partial], out=str(tmp_path / f"{label}_out"))
+        if finished < 2_000_000:
+            assert "nothing exported" in error_of(lambda: export_results.main(export))
+            assert "evaluated up to step 1,000,000 of 2,000,000 (unfinished)" in capsys.readouterr().err
+        else:
+            assert len(export_results.main(export)) == 1 and "unfinished" not in capsys.readouterr().err
     # two folders of one run name would write one file, the second over the first: refused before anything is written
     twin = write_fake_run(tmp_path / "twins" / "a", "Hopper-v4__ppo_baseline__3__1700000000", [0, 500_000])
     write_fake_run(tmp_path / "twins" / "b", os.path.basename(twin), [0, 500_000])
