@@ -616,7 +616,7 @@ def test_exported_runs_hold_what_the_figures_read(runs, tmp_path, capsys):
                                  hparams={"n": 4, "k": 500_000, "learning_starts": 5000, "seed": 1})
         export = export_results.Args(runs=[partial], out=str(tmp_path / f"{label}_out"))
         if finished < 2_000_000:
-            assert "nothing exported" in error_of(lambda: export_results.main(export))
+            assert "nothing exported" in error_of(lambda export=export: export_results.main(export))
             assert "evaluated up to step 1,000,000 of 2,000,000 (unfinished)" in capsys.readouterr().err
         else:
             assert len(export_results.main(export)) == 1 and "unfinished" not in capsys.readouterr().err
