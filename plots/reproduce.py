@@ -194,6 +194,9 @@ def main(args: Args) -> list[str]:
     if missing:  # checked before anything is written: a half-rebuilt figures folder would mix two sets of runs
         common.fail(f"{args.runs} has no exported runs of {' or '.join(missing)}; every figure builds on Fig. 2's "
                     f"standard Cascade and PPO runs (`sweep.py --preset reproduce`, then plots/export_results.py)")
+    for path in common.find_run_dirs([args.runs]):  # a damaged file stops here, not after half the figures
+        common.read_run(path)
+    before = set(os.listdir(args.out)) if os.path.isdir(args.out) else set()
     paths = learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name="fig2_learning_curves",
                                                       envs=envs, experiments=fig2, labels=LABELS))
     paths += final_performance.main(final_performance.Args(runs=runs, out=args.out, envs=envs, experiments=fig2,
@@ -217,6 +220,10 @@ def main(args: Args) -> list[str]:
                                                  final_window=args.final_window,
                                                  allow_incomplete=args.allow_incomplete))
     paths.append(common.write_text(args.out, "summary.md", summary(args) + "".join(sections)))
+    left = sorted(before - {os.path.basename(path) for path in paths})
+    if left:  # (not removed: a file of the user's own may be among them)
+        common.note(f"{len(left)} file(s) in {args.out} are not from these runs (an earlier build's, not in its new "
+                    f"summary.md): {common.short_list(left)}; remove them, or give a new --out")
     return paths
 
 
@@ -229,6 +236,10 @@ def ablations_present(folder: str) -> list[tuple]:
     for name, figure, experiments, labels, paper, envs in ABLATIONS:
         variants = [exp for exp in experiments if exp != "cascade"]
         with_runs = tuple(env for env in (envs or ENV_ORDER) if any((env, exp) in exported for exp in variants))
+        elsewhere = sorted({env for env, exp in exported if exp in variants and envs and env not in envs})
+        if elsewhere:  # (a fault hunt: sweep.py's default env, Hopper-v4, gave ablation runs no figure, silently)
+            common.note(f"{figure}: the runs of {', '.join(variants)} on {', '.join(elsewhere)} are not drawn (the "
+                        f"paper draws it on {', '.join(envs)} only)")
         if with_runs:
             drawn = tuple(env for env in envs if any((env, exp) in exported for exp in experiments)) if envs else with_runs
             present.append((name, figure, experiments, labels, paper, drawn))

@@ -524,6 +524,30 @@ def test_reproduce_checks_its_numbers_before_writing(tmp_path):
         assert not (tmp_path / "out").exists()
 
 
+def test_reproduce_names_an_earlier_builds_files_and_reads_every_run_first(tmp_path, capsys):
+    """A fault hunt: rebuilt into a folder of an earlier build (results/figures) from other runs, the figures it did
+    not redraw stayed beside the new ones, unmentioned; a damaged run file stopped it after half the figures."""
+    from plots import reproduce
+
+    sample, out = os.path.join(ROOT, "results", "sample"), tmp_path / "out"
+    reproduce.main(reproduce.Args(runs=sample, out=str(out), reps=20))
+    capsys.readouterr()
+    reproduce.main(reproduce.Args(runs=sample, out=str(out), reps=20))  # the same build again: nothing left over
+    assert "not from these runs" not in capsys.readouterr().err
+    (out / "fig14_sac.png").write_bytes(b"an earlier build's figure")
+    reproduce.main(reproduce.Args(runs=sample, out=str(out), reps=20))
+    err = capsys.readouterr().err
+    assert f"note: 1 file(s) in {out} are not from these runs" in err and "fig14_sac.png" in err, err
+    assert (out / "fig14_sac.png").exists()  # said, not removed
+    damaged = tmp_path / "damaged"
+    shutil.copytree(sample, damaged)
+    last = sorted(os.listdir(damaged))[-1]
+    text = (damaged / last).read_text()
+    (damaged / last).write_text(text[: len(text) // 2])
+    message = error_of(lambda: reproduce.main(reproduce.Args(runs=str(damaged), out=str(tmp_path / "new"), reps=20)))
+    assert last in message and not (tmp_path / "new").exists(), message
+
+
 def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
     """plots/reproduce.py rebuilds every figure and table of results/ from exported run files alone
     (results/sample: two tiny Cascade and PPO runs per seed on Hopper-v4, exported by plots/export_results.py)."""
@@ -641,7 +665,7 @@ def test_exported_runs_hold_what_the_figures_read(runs, tmp_path, capsys):
         export_results.main(export_results.Args(runs=[str(tmp_path / "empty")], out=str(tmp_path / "none")))
 
 
-def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
+def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path, capsys):
     """An ablation's figure and summary section appear once a variant's runs are exported, with its scores, on
     Ant-v4 and Walker2d-v4 (Fig. 8: on the envs of its runs); Fig. 2 keeps drawing standard Cascade and PPO only,
     though the ablation runs share the folder."""
@@ -686,7 +710,14 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path):
             run["hparams"]["exp_name"] = "cascade_tiny_k1M"
             run["name"] = run["name"].replace("__cascade__", "__cascade_tiny_k1M__")
             json.dump(run, open(runs / f"{run['name']}.json", "w"))
+            run["hparams"]["exp_name"] = "cascade_frozen"  # and a Fig. 4 run on Hopper-v4 (sweep.py's default env)
+            run["name"] = run["name"].replace("__cascade_tiny_k1M__", "__cascade_frozen__")
+            json.dump(run, open(runs / f"{run['name']}.json", "w"))
+    capsys.readouterr()
     paths = reproduce.main(reproduce.Args(runs=str(runs), out=str(tmp_path / "out"), reps=100))
+    err = capsys.readouterr().err  # not drawn (the paper's envs only), and said so
+    assert "note: Fig. 4: the runs of cascade_frozen on Hopper-v4 are not drawn (the paper draws it on Ant-v4, " \
+        "Walker2d-v4 only)" in err, err
     names = {os.path.basename(p) for p in paths}
     assert {"fig4_frozen.png", "fig11_fallback_init.png", "fig6_fig7_fallback_init_product.png",
             "fig6_fig7_fallback_init_per_net.png"} <= names, names
