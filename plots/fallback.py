@@ -51,25 +51,42 @@ class Args:
     nets: tuple[int, ...] = ()
     """nets i (2..n) drawn in the per-net figure (default: all; Fig. 7 of the paper: 2)"""
     final_window: int = 1
-    """Table 1 and 3 use the mean of a run's last this many logged values"""
+    """Table 1 and 3 use the mean of a run's last this many logged values (in a run folder one per PPO update, in an
+    exported run file one per evaluation); a run whose top net has logged fewer averages those (noted)"""
     columns: int = 3
     """panels per row"""
     allow_incomplete: bool = False
     """keep runs that stop before the others of their env and experiment in the final numbers (noted either way)"""
 
 
-def final_value(runs: list[common.Run], tag: str, window: int) -> tuple[float, float | None, int] | None:
-    """(mean over seeds, standard error or None for one seed, seeds) of the runs' final values of `tag`."""
-    values = np.array([r.scalars[tag].last(window) for r in runs if tag in r.scalars])
+def stack_windows(runs: list[common.Run], window: int, say: bool = True) -> dict[int, int]:
+    """id(run) -> how many of its last logged values its final λᵢ, σᵢ and w₁ average: `window`, or fewer where its
+    top net has logged fewer (noted): the window lies within the run's last stack, or λᵢ and w₁ would average
+    different stacks (a fault hunt: w₁ took in the 1.0 of before net 2 existed, λ₂ fewer values)."""
+    windows = {}
+    for run in runs:
+        top = max(common.fallback_nets([run], FALLBACK), default=None)
+        logged = len(run.scalars[f"{FALLBACK}{top}"].by_step()) if top is not None else window
+        windows[id(run)] = min(window, logged)
+        if logged < window and say:
+            common.note(f"{run.name}: its final fallbacks average its last {logged} logged value(s), not {window}: "
+                        f"its net {top} was added {logged} value(s) before its end")
+    return windows
+
+
+def final_value(runs: list[common.Run], tag: str, windows: dict[int, int]) -> tuple[float, float | None, int] | None:
+    """(mean over seeds, standard error or None for one seed, seeds) of the runs' final values of `tag`, each the
+    mean of its last `windows[id(run)]` values."""
+    values = np.array([r.scalars[tag].last(windows[id(r)]) for r in runs if tag in r.scalars])
     if not len(values):
         return None
     sem = float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else None
     return float(values.mean()), sem, len(values)
 
 
-def final_per_net(runs: list[common.Run], prefix: str, nets: list[int], window: int) -> dict[int, tuple]:
+def final_per_net(runs: list[common.Run], prefix: str, nets: list[int], windows: dict[int, int]) -> dict[int, tuple]:
     """net i -> `final_value` of `<prefix>i`, for the nets some run logs."""
-    table = {net: final_value(runs, f"{prefix}{net}", window) for net in nets}
+    table = {net: final_value(runs, f"{prefix}{net}", windows) for net in nets}
     return {net: value for net, value in table.items() if value is not None}
 
 
@@ -134,13 +151,14 @@ def main(args: Args) -> list[str]:
 
     # --- Tables 1 and 3 ---
     all_runs = [r for runs in selection.groups.values() for r in runs]
+    windows = stack_windows(all_runs, args.final_window)
     nets = common.fallback_nets(all_runs, FALLBACK)
     std_nets = common.fallback_nets(all_runs, FALLBACK_STD)
     table1, table3, csv_rows = [], [], []
     for (env, label), runs in selection.groups.items():
-        fallback = final_per_net(runs, FALLBACK, nets, args.final_window)
-        spread = final_per_net(runs, FALLBACK_STD, std_nets, args.final_window)
-        product = final_value(runs, PRODUCT, args.final_window)
+        fallback = final_per_net(runs, FALLBACK, nets, windows)
+        spread = final_per_net(runs, FALLBACK_STD, std_nets, windows)
+        product = final_value(runs, PRODUCT, windows)
         cells = [common.fmt(*fallback[i][:2], 2) if i in fallback else "–" for i in nets]
         table1.append([env, label, len(runs), *cells, common.fmt(*product[:2], 3)])
         table3.append([env, label, len(runs), *(common.fmt(*spread[i][:2], 3) if i in spread else "–"

@@ -146,8 +146,9 @@ def summary(args: Args) -> str:
         runs = selection.groups.get((env, "Cascade"), [])
         if not runs:
             continue
-        ours = fallback.final_per_net(runs, "cascade/fallback/net_", list(range(2, 7)), args.final_window)
-        std = fallback.final_per_net(runs, "cascade/fallback_std/net_", list(range(2, 7)), args.final_window)
+        windows = fallback.stack_windows(runs, args.final_window, say=False)  # (fallback.py notes them)
+        ours = fallback.final_per_net(runs, "cascade/fallback/net_", list(range(2, 7)), windows)
+        std = fallback.final_per_net(runs, "cascade/fallback_std/net_", list(range(2, 7)), windows)
         lines += ["", f"## {env}: Table 1 (final mean fallback λ, nets 2..6) and Table 3 (std of λ within an episode)",
                   "", common.markdown_table(
                       ["", *(f"net {i}" for i in range(2, 7))],

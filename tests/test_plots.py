@@ -295,6 +295,30 @@ def test_member_returns_match_logged_returns(runs, tmp_path):
         np.mean([dict(s["members/return/net_2"])[2048] for s in logged]), rel=1e-6)
 
 
+def test_final_fallbacks_average_the_last_stack_only(tmp_path, capsys):
+    """A fault hunt: with a window reaching back before the top net was added, w₁ took in the product of the smaller
+    stack (1.0 before net 2) while λ of the top net averaged fewer values, so w₁ was not the product of the λs and a
+    run folder and its export disagreed. The window is cut to the top net's values, with a note."""
+    import json
+
+    sample = os.path.join(ROOT, "results", "sample")
+    name = next(n for n in sorted(os.listdir(sample)) if "__cascade__" in n)
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(os.path.join(sample, name), one)
+    data = json.load(open(one / name))
+    tops = data["scalars"]["cascade/fallback/net_3"]["values"]
+    products = data["scalars"]["cascade/fallback_product"]["values"]
+    assert len(tops) == 2 and len(products) > 3  # (net 3 was added 2 evaluations before the end)
+    capsys.readouterr()
+    fallback.main(fallback.Args(runs=(str(one),), out=str(tmp_path / "out"), final_window=3))
+    assert f"note: {name[:-5]}: its final fallbacks average its last 2 logged value(s), not 3" in capsys.readouterr().err
+    rows = {(r["quantity"], r["net"]): float(r["mean"]) for r in read_csv(tmp_path / "out" / "fallback_tables.csv")}
+    assert rows[("fallback_product", "")] == pytest.approx(np.mean(products[-2:]), rel=1e-9)
+    assert rows[("fallback", "3")] == pytest.approx(np.mean(tops), rel=1e-9)
+    assert rows[("fallback", "2")] == pytest.approx(np.mean(data["scalars"]["cascade/fallback/net_2"]["values"][-2:]))
+
+
 def test_fallback_course_follows_the_saved_policy(runs, tmp_path):
     run_dir = runs["cascade"][0]
     paths = analyze.fallback_course(analyze.FallbackCourse(checkpoint=run_dir, out=str(tmp_path), seed=3))
@@ -694,7 +718,7 @@ def test_ablation_figures_come_from_the_ablation_runs_only(tmp_path, capsys):
             if new_exp == "cascade_fallback0.9":
                 product = run["scalars"]["cascade/fallback_product"]
                 product["values"] = [v * 1.5 for v in product["values"]]
-                scores["product0.9"] = product["values"][-3:]
+                scores["product0.9"] = product["values"][-2:]  # (its net 3 logged 2 values: the last stack)
             json.dump(run, open(runs / f"{run['name']}.json", "w"))
         if seed == "1":  # Fig. 16's pair (`--preset discrete`) on Walker2d-v4 alone, returns scaled by 3
             run = json.loads(json.dumps(data))
