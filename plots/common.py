@@ -134,6 +134,12 @@ def find_run_dirs(roots: Sequence[str]) -> list[str]:
     exported run `<run_name>.json` (plots/export_results.py; the committed results/per_run/)."""
     found = []
     for root in roots:
+        if os.path.isfile(root):  # one exported run file is that run; another file is no runs folder
+            if root.endswith(".json") and parse_run_name(os.path.basename(root)[:-5]):
+                found.append(root)
+                continue
+            fail(f"--runs '{root}' is a file, not a runs folder; pass the folder that holds the run folders or the "
+                 "exported run files (<run_name>.json)")
         if not os.path.isdir(root):
             fail(f"runs folder '{root}' does not exist")
         # normpath: a run folder given with a trailing slash would otherwise have an empty basename
@@ -503,8 +509,11 @@ def fmt(mean: float, sem: float | None, digits: int) -> str:
 # ----------------------------------------------------------------------------------------------
 def pyplot():
     """matplotlib.pyplot on the Agg backend (no display needed), with readable defaults."""
-    import matplotlib
-
+    os.environ.pop("MPLBACKEND", None)  # (the backend is Agg whatever it names; a bad name failed the import)
+    try:
+        import matplotlib
+    except ImportError:
+        fail("matplotlib is not installed; install the project's requirements: pip install -r requirements.txt")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -395,6 +395,28 @@ def test_no_matching_runs(runs, tmp_path):
     assert "Hopper-v4/ppo_baseline (2 runs)" in message
     message = error_of(lambda: learning_curves.main(learning_curves.Args(runs=(str(tmp_path / "nope"),))))
     assert "does not exist" in message
+    # a file (a fault hunt: "does not exist"): an exported run file is that run; another file is refused as one
+    other = tmp_path / "notes.txt"
+    other.write_text("x")
+    message = error_of(lambda: learning_curves.main(learning_curves.Args(runs=(str(other),), out=str(tmp_path))))
+    assert f"--runs '{other}' is a file, not a runs folder" in message, message
+    sample = os.path.join(ROOT, "results", "sample")
+    files = tuple(os.path.join(sample, name) for name in sorted(os.listdir(sample)))
+    paths = learning_curves.main(learning_curves.Args(runs=files, out=str(tmp_path / "files")))
+    folder = learning_curves.main(learning_curves.Args(runs=(sample,), out=str(tmp_path / "folder")))
+    assert [os.path.basename(p) for p in paths] == [os.path.basename(p) for p in folder]
+    csv = next(os.path.basename(p) for p in paths if p.endswith(".csv"))
+    assert read_csv(tmp_path / "files" / csv) == read_csv(tmp_path / "folder" / csv)
+
+
+def test_a_bad_mplbackend_does_not_stop_the_plots(tmp_path):
+    """A fault hunt: MPLBACKEND=bogus in the environment failed matplotlib's import with a traceback; the plots draw
+    on Agg whatever it names."""
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "plots", "learning_curves.py"), "--runs",
+                           os.path.join(ROOT, "results", "sample"), "--out", str(tmp_path)], capture_output=True,
+                          text=True, env={**os.environ, "MPLBACKEND": "bogus"}, timeout=300)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert any(name.endswith(".png") for name in os.listdir(tmp_path))
 
 
 def test_runs_of_another_env_in_a_panel(runs, tmp_path):
