@@ -117,7 +117,7 @@ def summary(args: Args) -> str:
     """The reproduction next to the paper's numbers, per env."""
     selection = common.select_runs((args.runs,), [e for e in ENV_ORDER if e in envs_present(args.runs)],
                                    ("cascade", "ppo"), labels=LABELS, complete_only=not args.allow_incomplete)
-    lines = ["# Reproduction of the paper's Fig. 2 (our runs, results/per_run)", "",
+    lines = [f"# Reproduction of the paper's Fig. 2 (the runs of {os.path.normpath(args.runs)})", "",
              f"Score of a run: mean evaluation return over its last {args.final_window} evaluations "
              f"({common.evaluation_protocol([r for runs in selection.groups.values() for r in runs])}, stochastic "
              "policy). Mean ± standard error over seeds; P(Cascade > PPO) is the share of "
@@ -172,7 +172,8 @@ def summary(args: Args) -> str:
                 hours = np.array([analyze.run_seconds(r) for r in runs]) / 3600
                 millions = np.mean([r.last_step() for r in runs]) / 1e6
                 runtime_rows.append([env, label, len(runs), f"{hours.mean():.2f} h", f"{hours.mean() / millions:.2f} h"])
-    lines += ["", "## Runtime (Table 2): training time per run on this 2-core machine, two runs side by side", "",
+    ours = " (ours: 2 cores, two runs side by side)" if os.path.normpath(args.runs) == "results/per_run" else ""
+    lines += ["", f"## Runtime (Table 2): training time per run, as the runs logged it{ours}", "",
               common.markdown_table(["env", "algorithm", "runs", "per run", "per 1M steps"], runtime_rows),
               "", "Paper (28-core Xeon Gold 5120, 6M steps on Ant): PPO 5.5 h, Cascade 8.6 h."]
     return "\n".join(lines) + "\n"

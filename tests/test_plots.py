@@ -614,6 +614,9 @@ def test_reproduction_rebuilds_from_the_committed_sample(tmp_path):
         scores[data["hparams"]["exp_name"]].append(np.mean(data["scalars"]["eval/episodic_return"]["values"][-3:]))
         assert data["command"] and data["commit"] and data["seconds"] > 0
     summary = open(tmp_path / "summary.md").read()
+    # it names the runs it was built from, not ours (a fault hunt: "our runs, results/per_run" whatever --runs)
+    assert summary.startswith(f"# Reproduction of the paper's Fig. 2 (the runs of {os.path.normpath(sample)})")
+    assert "results/per_run" not in summary and "2 cores" not in summary
     # the evaluation protocol it states is the runs' own (it said "every 50k steps, 10 episodes" whatever they did)
     logged = {(data["hparams"]["eval_every"], data["hparams"]["eval_episodes"])
               for data in (json.load(open(os.path.join(sample, name))) for name in os.listdir(sample))}
