@@ -520,7 +520,8 @@ def train(args: Args, checkpoint: dict | None = None,
                 critic = make_critic(obs_dim).to(device)
             flat_params = share_one_buffer([*actor.parameters(), *critic.parameters()])
             optimizer = make_optimizer(actor, critic, flat_params, args.learning_rate)
-        run.iteration_start(iteration, actor, critic, global_step, continuing)
+        run.iteration_start(iteration, actor.size, count_parameters(actor, critic), "actor + critic", global_step,
+                            continuing)
         if on_iteration_start is not None:
             on_iteration_start(
                 {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}
@@ -750,16 +751,6 @@ class RunLog(RunRecord):
         return critic, flat_params, optimizer
 
     # --- logging ---
-    def iteration_start(self, iteration: int, actor: CascadeActor, critic: nn.Module, global_step: int,
-                        continuing: bool) -> None:
-        """`continuing`: a resume in the middle of the iteration, whose start is logged already."""
-        n_params = count_parameters(actor, critic)
-        if not continuing:
-            self.writer.add_scalar("cascade/size", actor.size, global_step)
-            self.writer.add_scalar("cascade/parameters", n_params, global_step)
-        how = f"continues at global_step={global_step}" if continuing else f"{actor.size} base net(s)"
-        self.progress.message(f"iteration {iteration}/{self.args.n}: {how}, {n_params} parameters (actor + critic)")
-
     def update_done(self, global_step: int, optimizer: torch.optim.Optimizer, parts: dict,
                     old_approx_kl: torch.Tensor, approx_kl: torch.Tensor, ratios: torch.Tensor,
                     b_values: torch.Tensor, b_returns: torch.Tensor, batch_fallback: torch.Tensor,

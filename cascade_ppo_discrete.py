@@ -480,12 +480,7 @@ def train(args: Args, checkpoint: dict | None = None,
             optimizer = make_optimizer([*actor.parameters(), *critic.parameters()], args.learning_rate)
         size = actor.size
         params = [param for group in optimizer.param_groups for param in group["params"]]
-        n_params = count_parameters(actor, critic)
-        if not continuing:  # (a resume in the middle of the iteration: its start is logged already)
-            writer.add_scalar("cascade/size", size, global_step)
-            writer.add_scalar("cascade/parameters", n_params, global_step)
-        how = f"continues at global_step={global_step}" if continuing else f"{size} base net(s)"
-        say(f"iteration {iteration}/{args.n}: {how}, {n_params} parameters (actor + critic)")
+        run.iteration_start(iteration, size, count_parameters(actor, critic), "actor + critic", global_step, continuing)
         if on_iteration_start is not None:
             on_iteration_start(
                 {"iteration": iteration, "actor": actor, "critic": critic, "optimizer": optimizer, "envs": envs}

@@ -516,8 +516,9 @@ def expand(args: Args) -> list[Run]:
             if flag_name(flag) in SWEEP_FLAGS:
                 fail(f"'{template}' sets {flag_name(flag)}, which the sweep sets for each run itself: give "
                      "env ids with --envs and seeds with --seeds, and the sweep folder with --sweep-dir")
-        template_flags, cadence, _, _ = scale_template(script, canonical_flags(flags), args.scale, template)
-        written = None if canonical_flags(flags) == flags else scale_template(script, flags, args.scale, template)[0]
+        canonical = canonical_flags(flags)
+        template_flags, cadence, _, _ = scale_template(script, canonical, args.scale, template)
+        written = None if canonical == flags else scale_template(script, flags, args.scale, template)[0]
         scaled.append((label, script, template_flags, cadence, written))
     problem, smallest = scale_problem(templates, args.scale)
     if problem:

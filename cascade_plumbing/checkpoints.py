@@ -129,12 +129,12 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "", rea
     another script, or of another version of this one (`checkpoint_format` is "<script>/<version>";
     `older_note` says what changed since an older version). A caller that only reads checkpoints (an analysis)
     names in `reader_flag` the flag that takes one: a corrupt file's error then advises that flag, not --resume."""
-    if not os.path.exists(path) and not os.path.isdir(os.path.dirname(path) or "."):
-        fail(f"no checkpoint at {path}: no such file or folder; pass a run folder holding {CHECKPOINT_NAME} or a "
+    parent_exists = os.path.isdir(os.path.dirname(path) or ".")
+    if not os.path.exists(path) and not (parent_exists and path.endswith(".pt")):  # (a mistyped run folder: its
+        # parent's other runs are not named: a sibling, of another seed say, is not the run asked for)
+        missing = "folder" if parent_exists else "file or folder"
+        fail(f"no checkpoint at {path}: no such {missing}; pass a run folder holding {CHECKPOINT_NAME} or a "
              "checkpoint file")
-    if not os.path.exists(path) and not path.endswith(".pt"):  # a mistyped run folder: its parent's other runs are
-        fail(f"no checkpoint at {path}: no such folder; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint "
-             "file")  # not named (a sibling, of another seed say, is not the run asked for)
     if os.path.isdir(path):
         path = os.path.join(path, CHECKPOINT_NAME)
     if not os.path.isfile(path):

@@ -262,16 +262,6 @@ class OffPolicyRun(RunRecord):
         return bool(STOP_REQUESTED) or super().checkpoint_due(global_step)
 
     # --- logging ---
-    def iteration_start(self, iteration: int, size: int, n_params: int, nets: str, global_step: int,
-                        continuing: bool = False) -> None:
-        """`nets`: what `n_params` counts, e.g. "actor + critics". `continuing`: a resume in the middle of the
-        iteration, whose start is logged already (a second point would be one the uninterrupted run does not have)."""
-        if not continuing:
-            self.writer.add_scalar("cascade/size", size, global_step)
-            self.writer.add_scalar("cascade/parameters", n_params, global_step)
-        how = f"continues at global_step={global_step}" if continuing else f"{size} base net(s)"
-        self.progress.message(f"iteration {iteration}/{self.args.n}: {how}, {n_params} parameters ({nets})")
-
     def tick(self, global_step: int, size: int) -> None:
         """Every 100 steps: the steps per second, and the progress line."""
         if global_step % 100 == 0:

@@ -114,6 +114,17 @@ class RunRecord:
         self.progress.message(f"resumed {checkpoint['path']} at global_step={global_step}{note}")
         return global_step, np.asarray(checkpoint["next_obs"], dtype=np.float32)
 
+    def iteration_start(self, iteration: int, size: int, n_params: int, nets: str, global_step: int,
+                        continuing: bool = False) -> None:
+        """The stack at an iteration's start: its size and `n_params` (`nets`: what they count, e.g. "actor +
+        critics"). `continuing`: a resume in the middle of the iteration, whose start is logged already (a second
+        point would be one the uninterrupted run does not have)."""
+        if not continuing:
+            self.writer.add_scalar("cascade/size", size, global_step)
+            self.writer.add_scalar("cascade/parameters", n_params, global_step)
+        how = f"continues at global_step={global_step}" if continuing else f"{size} base net(s)"
+        self.progress.message(f"iteration {iteration}/{self.args.n}: {how}, {n_params} parameters ({nets})")
+
     def sps(self, global_step: int) -> float:
         return global_step / max(time.time() - self.start_time, 1e-9)
 
