@@ -358,6 +358,19 @@ def rollout_steps(script: str, flags: list[str]) -> int | None:
     return num_envs * num_steps if num_steps >= 1 else None
 
 
+def replay_batch(script: str, flags: list[str]) -> tuple[int, int] | None:
+    """For an off-policy script run with `flags`: (--batch-size, the iterations its replay buffer spans: --n with
+    --keep-buffer, else 1); None for the PPO scripts (and for values the script itself will refuse)."""
+    if script_default(script, "batch_size") is None or script_default(script, "num_minibatches") is not None:
+        return None
+    try:
+        batch = int(flag_value(flags, "--batch-size") or script_default(script, "batch_size"))
+        spans = int(flag_value(flags, "--n") or script_default(script, "n") or 1) if "--keep-buffer" in flags else 1
+    except ValueError:
+        return None
+    return (batch, spans) if batch >= 1 and spans >= 1 else None
+
+
 def scale_template(script: str, flags: list[str], scale: float,
                    template: str) -> tuple[list[str], list[str], float, tuple[float, float, str, int, int]]:
     """A template's flags at `scale`, the checkpoint cadence to add, the smallest scale its PPO budgets allow, and
@@ -383,6 +396,7 @@ def scale_template(script: str, flags: list[str], scale: float,
             out += [flag, str(default)]
     rollout = rollout_steps(script, out)
     smallest, rounding = 0.0, (0.0, 0.0, "", 0, 0)
+    batch = replay_batch(script, out)
     cycles = whole_lr_cycles(out)
 
     def scaled(name: str, value: str) -> str:
@@ -398,6 +412,8 @@ def scale_template(script: str, flags: list[str], scale: float,
             return str(max(new, min(MIN_EVAL_EVERY, steps)))
         if name == CADENCE_FLAG:
             return str(max(new, min(MIN_CADENCE, steps)))
+        if batch and name == "--k":  # an off-policy iteration must hold a batch (--keep-buffer: the run)
+            smallest = max(smallest, batch[0] / (steps * batch[1]))
         if rollout:
             smallest = max(smallest, rollout / steps)
             new = max(round(steps * scale / rollout), 1) * rollout
@@ -434,7 +450,9 @@ def scale_problem(templates: list[tuple[str, str, list[str]]], scale: float) -> 
               for _, script, flags in templates]
     smallest, template = max((result[2], template) for result, template in scaled)
     if smallest > scale:
-        return f"makes a budget of '{template}' less than one PPO rollout", smallest
+        script = shlex.split(template)[0]
+        least = "one PPO rollout" if rollout_steps(script, shlex.split(template)[1:]) else "one --batch-size of steps"
+        return f"makes a budget of '{template}' less than {least}", smallest
     (change, _, flag, steps, exact), template = max((result[3], template) for result, template in scaled)
     if change > MAX_ROUNDING:
         return (f"gives '{template}' {flag} {steps} (whole PPO rollouts) instead of {exact}, {100 * change:.0f}% "
@@ -525,7 +543,8 @@ def expand(args: Args) -> list[Run]:
         works = a_scale_that_works(templates, max(smallest, args.scale))
         which = "the smallest that works" if smallest > args.scale else "the next one up that works"
         fail(f"--scale {args.scale:g} {problem}; use --scale {works:.2g} ({which}: every PPO budget at least one "
-             "rollout, and in whole rollouts within 10% of its scaled value and of the others')")
+             "rollout, and in whole rollouts within 10% of its scaled value and of the others', and the steps a "
+             "SAC/DDPG replay buffer holds at least one batch)")
     runs, seen = [], set()
     # env by env, seed by seed: the runs one figure panel compares finish together
     for env_id in args.envs:

@@ -203,7 +203,8 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
              (["--command", "cascade_sac.py --n 0"], "'cascade_sac.py --n 0' on Hopper-v4: --n must be at least 1"),
              (["--command", "cascade_sac.py --k 600 --learning-starts 100 --policy-frequency 1000"],
               "--policy-frequency 1000: no update step of an iteration (101 to 599) is a multiple of it"),
-             (["--preset", "sac", "--scale", "0.000001"], "--k 0 must exceed --learning-starts 0 + 1"),
+             (["--preset", "sac", "--scale", "0.000001"], "makes a budget of 'cascade_sac.py --n 4 --k 500000 "
+              "--eval-every 50000' less than one --batch-size of steps; use --scale 0.00052 (the smallest that works"),
              (["--command", "cascade_sac.py --n 1 --keep-buffer"], "--keep-buffer has no effect with --n 1"),
              (["--command", "ppo_baseline_discrete.py --normalize", "--envs", "CartPole-v1"],
               "on CartPole-v1: --normalize applies to discretized Box envs only"),
@@ -268,6 +269,19 @@ def test_scale_works_for_sac_and_ddpg(tmp_path):
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     assert len(os.listdir(tmp_path / "done")) == 1
+    # a scale too small for a batch names one that works (a fault hunt: it failed in the script's own line, "pass a
+    # smaller --batch-size or a larger --k", naming no scale), and that one passes every script's checks
+    for template, works in (("cascade_sac.py --n 4 --k 500000", 0.00052),
+                            ("cascade_sac.py --n 4 --k 500000 --keep-buffer", 0.00013),
+                            ("cascade_ddpg.py --n 6 --k 1000000 --batch-size 100", 0.0001)):
+        with mock.patch.object(sys, "argv", ["sweep.py", "--command", template, "--scale", str(works / 2),
+                                             "--sweep-dir", str(tmp_path / "s"), "--dry-run"]):
+            with pytest.raises(SystemExit) as stop:
+                sweep.sweep()
+        assert f"less than one --batch-size of steps; use --scale {works:.2g} (the smallest" in str(stop.value)
+        with mock.patch.object(sys, "argv", ["sweep.py", "--command", template, "--scale", str(works),
+                                             "--sweep-dir", str(tmp_path / "s"), "--dry-run"]):
+            sweep.sweep()
 
 
 def test_one_setup_spelled_two_ways_is_one_run_in_one_or_two_sweeps(tmp_path, capsys):
