@@ -17,7 +17,8 @@ evaluated every 50,000 steps with 10 episodes) and writes to `results/figures/`:
   (`fig6_fig7_fallback_init_product.*`, `_per_net.*`, `_tables.md`);
 - for the other scripts, with exported runs of `python sweep.py --preset discrete`, `--preset sac` or `--preset ddpg`: Fig. 16
   (discrete Cascade against discrete PPO), Fig. 14 (Cascade-SAC against SAC) and Fig. 15 (Cascade-DDPG against
-  DDPG), drawn and summarized as the ablations are, on the envs with runs.
+  DDPG), drawn and summarized as the ablations are, on the envs with runs; a folder with these runs alone (no
+  Fig. 2 runs) gets these figures only.
 
     python plots/reproduce.py                       # results/per_run -> results/figures
 """
@@ -192,13 +193,46 @@ def main(args: Args) -> list[str]:
     runs = (args.runs,)
     fig2 = ("cascade", "ppo")  # the ablations' runs share the folder
     exported = {common.parse_run_name(p)[1] for p in common.find_run_dirs([args.runs])}
-    missing = [exp for exp in fig2 if exp not in exported]
+    ablations = ablations_present(args.runs)
+    # Fig. 2 needs both of its runs, an ablation drawn beside standard Cascade needs those; a folder of the other
+    # scripts' runs only (Fig. 14-16) needs neither (a fault hunt: it was refused for want of Fig. 2's runs)
+    needed = {*(fig2 if exported & set(fig2) else ()),
+              *("cascade" for ablation in ablations if "cascade" in ablation[2])}
+    missing = [exp for exp in fig2 if exp in needed and exp not in exported]
     if missing:  # checked before anything is written: a half-rebuilt figures folder would mix two sets of runs
-        common.fail(f"{args.runs} has no exported runs of {' or '.join(missing)}; every figure builds on Fig. 2's "
-                    f"standard Cascade and PPO runs (`sweep.py --preset reproduce`, then plots/export_results.py)")
+        common.fail(f"{args.runs} has no exported runs of {' or '.join(missing)}; Fig. 2 and the ablations build on "
+                    f"its standard Cascade and PPO runs (`sweep.py --preset reproduce`, then plots/export_results.py)")
     for path in common.find_run_dirs([args.runs]):  # a damaged file stops here, not after half the figures
         common.read_run(path)
     before = set(os.listdir(args.out)) if os.path.isdir(args.out) else set()
+    paths = fig2_and_tables(args, envs) if needed else []
+    sections = []
+    for name, figure, experiments, labels, paper, ablation_envs in ablations:
+        paths += learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name=name, envs=ablation_envs,
+                                                          experiments=experiments, labels=labels))
+        sections.append(ablation_summary(args, figure, experiments, labels, paper, ablation_envs))
+        if name == "fig11_fallback_init":  # Fig. 6 (fallback product) and 7 (each net's fallback) per initial fallback
+            paths += fallback.main(fallback.Args(runs=runs, out=args.out, name="fig6_fig7_fallback_init",
+                                                 envs=ablation_envs, experiments=experiments, labels=labels,
+                                                 final_window=args.final_window,
+                                                 allow_incomplete=args.allow_incomplete))
+    if not sections and not needed:
+        common.fail(f"{args.runs} has runs of none of the paper's experiments (Fig. 2's cascade and ppo, the "
+                    f"ablations', Fig. 14-16's); export finished runs of `sweep.py --preset ...` there first")
+    head = summary(args) if needed else (f"# Reproduction of the paper's figures (the runs of "
+                                         f"{os.path.normpath(args.runs)})\n\nNo runs of Fig. 2 (standard Cascade "
+                                         "and PPO) here: only the figures below.\n")
+    paths.append(common.write_text(args.out, "summary.md", head + "".join(sections)))
+    left = sorted(before - {os.path.basename(path) for path in paths})
+    if left:  # (not removed: a file of the user's own may be among them)
+        common.note(f"{len(left)} file(s) in {args.out} are not from these runs (an earlier build's, not in its new "
+                    f"summary.md): {common.short_list(left)}; remove them, or give a new --out")
+    return paths
+
+
+def fig2_and_tables(args: Args, envs: tuple) -> list[str]:
+    """Fig. 2, the final performance, the fallback tables, the members and the runtime, from the standard runs."""
+    runs, fig2 = (args.runs,), ("cascade", "ppo")
     paths = learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name="fig2_learning_curves",
                                                       envs=envs, experiments=fig2, labels=LABELS))
     paths += final_performance.main(final_performance.Args(runs=runs, out=args.out, envs=envs, experiments=fig2,
@@ -211,21 +245,6 @@ def main(args: Args) -> list[str]:
     paths += members.main(members.Args(runs=runs, out=args.out, envs=envs, experiments=("cascade",), labels=LABELS))
     paths += analyze.table2(analyze.Table2(runs=runs, out=args.out, name="runtime", envs=envs, experiments=fig2,
                                            labels=LABELS, allow_incomplete=args.allow_incomplete))
-    sections = []
-    for name, figure, experiments, labels, paper, ablation_envs in ablations_present(args.runs):
-        paths += learning_curves.main(learning_curves.Args(runs=runs, out=args.out, name=name, envs=ablation_envs,
-                                                          experiments=experiments, labels=labels))
-        sections.append(ablation_summary(args, figure, experiments, labels, paper, ablation_envs))
-        if name == "fig11_fallback_init":  # Fig. 6 (fallback product) and 7 (each net's fallback) per initial fallback
-            paths += fallback.main(fallback.Args(runs=runs, out=args.out, name="fig6_fig7_fallback_init",
-                                                 envs=ablation_envs, experiments=experiments, labels=labels,
-                                                 final_window=args.final_window,
-                                                 allow_incomplete=args.allow_incomplete))
-    paths.append(common.write_text(args.out, "summary.md", summary(args) + "".join(sections)))
-    left = sorted(before - {os.path.basename(path) for path in paths})
-    if left:  # (not removed: a file of the user's own may be among them)
-        common.note(f"{len(left)} file(s) in {args.out} are not from these runs (an earlier build's, not in its new "
-                    f"summary.md): {common.short_list(left)}; remove them, or give a new --out")
     return paths
 
 

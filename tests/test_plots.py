@@ -559,6 +559,49 @@ def test_reproduce_writes_nothing_without_the_standard_runs(tmp_path):
     assert "no exported runs of cascade" in message and not (tmp_path / "out").exists()
 
 
+def test_reproduce_draws_the_other_scripts_figures_without_fig2_runs(tmp_path):
+    """A fault hunt: a folder of Fig. 14-16 runs only (the other scripts' sweeps) was refused for want of Fig. 2's
+    standard runs, which none of those figures draws. Now they are drawn, and summary.md says Fig. 2 is not there;
+    an ablation drawn beside standard Cascade still needs those runs, and a folder of no known experiment is refused."""
+    import json
+
+    from plots import reproduce
+
+    sample, runs = os.path.join(ROOT, "results", "sample"), tmp_path / "fig14"
+    runs.mkdir()
+    scores = {}
+    for name in sorted(os.listdir(sample)):
+        data = json.load(open(os.path.join(sample, name)))
+        exp, seed = data["hparams"]["exp_name"], data["hparams"]["seed"]
+        if seed != "1":
+            continue
+        new_exp = {"cascade": "cascade_sac", "ppo": "sac"}[exp]
+        data["hparams"]["exp_name"] = new_exp
+        data["name"] = data["name"].replace(f"__{exp}__", f"__{new_exp}__")
+        scores[new_exp] = np.mean(data["scalars"]["eval/episodic_return"]["values"][-3:])
+        json.dump(data, open(runs / f"{data['name']}.json", "w"))
+    paths = reproduce.main(reproduce.Args(runs=str(runs), out=str(tmp_path / "out"), reps=20))
+    assert {os.path.basename(p) for p in paths} >= {"fig14_sac.png", "summary.md"}
+    assert not any(os.path.basename(p).startswith(("fig2", "final_performance")) for p in paths), paths
+    summary = open(tmp_path / "out" / "summary.md").read()
+    assert "No runs of Fig. 2 (standard Cascade and PPO) here" in summary, summary
+    row = next(line for line in summary.splitlines() if line.startswith("| Hopper-v4 |"))
+    assert f"{scores['cascade_sac']:.0f} (seeds 1)" in row and f"{scores['sac']:.0f} (seeds 1)" in row, row
+    frozen = tmp_path / "frozen"  # Fig. 4 compares with standard Cascade: still refused without it
+    frozen.mkdir()
+    data = json.load(open(runs / os.listdir(runs)[0]))
+    data["hparams"].update(exp_name="cascade_frozen", env_id="Ant-v4")
+    data["name"] = "Ant-v4__cascade_frozen__1__1"
+    json.dump(data, open(frozen / f"{data['name']}.json", "w"))
+    message = error_of(lambda: reproduce.main(reproduce.Args(runs=str(frozen), out=str(tmp_path / "o2"), reps=20)))
+    assert "no exported runs of cascade" in message and not (tmp_path / "o2").exists(), message
+    os.remove(frozen / f"{data['name']}.json")
+    data["hparams"]["exp_name"], data["name"] = "mine", "Ant-v4__mine__1__1"
+    json.dump(data, open(frozen / f"{data['name']}.json", "w"))
+    message = error_of(lambda: reproduce.main(reproduce.Args(runs=str(frozen), out=str(tmp_path / "o3"), reps=20)))
+    assert "has runs of none of the paper's experiments" in message and not (tmp_path / "o3").exists(), message
+
+
 def test_reproduce_checks_its_numbers_before_writing(tmp_path):
     """Audit: --final-window 0 (or --reps 0) rewrote Fig. 2's curves, then stopped at the final scores."""
     from plots import reproduce
