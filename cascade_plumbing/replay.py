@@ -116,6 +116,10 @@ class ReplayFiles:
         first, end = buffer.added - buffer.size, buffer.added
         os.makedirs(self.folder, exist_ok=True)
         row = max(self.flushed, first)
+        if row > first and not self.on_disk(first, row):
+            # files of replay/ were deleted or cut short since the last save (a fault hunt: the next checkpoint
+            # recorded rows that were gone, and could never be resumed); every row is still in memory: write them again
+            row = first
         for part in buffer.log_slices(row, end):
             while len(part):
                 index, offset = divmod(row, self.SEGMENT_ROWS)
@@ -131,6 +135,17 @@ class ReplayFiles:
             fsync_dir(self.folder)  # a new segment's name, durable before the checkpoint that needs it
         self.flushed = end
         return {"first": first, "end": end, "start": buffer.start, "crc32": self.crc32(first, end)}
+
+    def on_disk(self, first: int, end: int) -> bool:
+        """Whether the segment files that hold log rows [first, end) are there and long enough (a stat each)."""
+        for index in range(first // self.SEGMENT_ROWS, (end - 1) // self.SEGMENT_ROWS + 1):
+            rows = min(end - index * self.SEGMENT_ROWS, self.SEGMENT_ROWS)
+            try:
+                if os.path.getsize(self.segment(index)) < rows * self.row_bytes:
+                    return False
+            except OSError:
+                return False
+        return True
 
     def crc32(self, first: int, end: int) -> int:
         """CRC-32 of the buffer's log rows [first, end), in log order."""

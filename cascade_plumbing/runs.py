@@ -360,6 +360,21 @@ def refused_write(exc: BaseException) -> OSError | None:
     return None
 
 
+def changed_under_the_run(exc: BaseException, run_dir: str | None) -> OSError | None:
+    """The OSError of a path inside `run_dir` that was not what the run had made (gone, or replaced by a file or a
+    folder: the folder moved or deleted, replay/ replaced while it trained), or None."""
+    if run_dir is None:
+        return None
+    inside = os.path.abspath(run_dir) + os.sep
+    while exc is not None:
+        if (isinstance(exc, OSError) and exc.filename and exc.errno in (errno.ENOENT, errno.ENOTDIR, errno.EEXIST,
+                                                                        errno.EISDIR)
+                and os.path.abspath(os.fsdecode(exc.filename)).startswith(inside)):
+            return exc
+        exc = exc.__cause__
+    return None
+
+
 def disk_full(exc: BaseException) -> bool:
     """Whether `exc` (or an exception it was raised from) is a full disk (ENOSPC, or EDQUOT: a full quota)."""
     while exc is not None:
@@ -623,6 +638,19 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
             kept = os.path.join(run_dir, CHECKPOINT_NAME) if run_dir else ""  # ("": no run folder yet)
             fail(f"a value overflowed float32 ({str(exc).splitlines()[0]}), e.g. a learning rate too large for it; "
                  f"{non_finite_advice(kept, rates)}")
+        run_dir = None if isinstance(exc, SystemExit) else this_run_dir(checkpoint)
+        changed = changed_under_the_run(exc, run_dir)
+        if changed is not None:  # (a fault hunt: a 40-line traceback of TensorBoard's writer, or of replay/)
+            end_env_workers()
+            path = os.fsdecode(changed.filename)
+            if not os.path.isdir(run_dir):
+                fail(f"the run folder {run_dir} is gone ({path}: {changed.strerror}): it was moved or deleted while "
+                     f"the run trained, and its checkpoints with it: continue with python "
+                     f"{os.path.basename(sys.argv[0])} --resume <the folder where it is now> (if it holds a "
+                     "checkpoint.pt; else start again)")
+            stop_short_of(f"cannot write {path} ({changed.strerror}): the run folder was changed while the run "
+                          "trained", "", run_dir, "put back what was moved or replaced there",
+                          "start the run again")
         refused = None if isinstance(exc, SystemExit) else refused_write(exc)
         if refused is not None:  # a folder made read-only, a file of the run whose permissions changed, a disk error
             end_env_workers()

@@ -303,6 +303,72 @@ def test_a_kill_between_the_rows_and_the_checkpoint_loses_nothing(algo, uninterr
     assert_identical(expected, final_state(resume(mod, run_dir), algo))
 
 
+@pytest.mark.parametrize("damage", ["folder deleted", "segment cut short"])
+def test_replay_files_lost_while_the_run_trains_are_written_again(damage, uninterrupted, tmp_path, monkeypatch):
+    """A fault hunt: replay/ deleted (or a segment cut short) while a run trained, the next checkpoint wrote only the
+    rows added since the previous one and recorded rows that were gone, so the run could never be resumed (all its
+    work lost). Every row is still in memory: the next checkpoint writes them again, and a kill after it resumes
+    bit-identical."""
+    mod = SCRIPTS["sac"]
+    monkeypatch.setattr(ReplayFiles, "SEGMENT_ROWS", 16)
+    expected = uninterrupted("sac", False)[0]
+    original = offpolicy.OffPolicyRun.step
+
+    def damage_then_die(self, actions, buffer, global_step):
+        original(self, actions, buffer, global_step)
+        replay = os.path.join(self.run_dir, "replay")
+        if global_step == 150 and damage == "folder deleted":
+            shutil.rmtree(replay)
+        elif global_step == 150:
+            segment = os.path.join(replay, sorted(os.listdir(replay))[-2])  # a whole one, of rows the buffer holds
+            os.truncate(segment, os.path.getsize(segment) // 2)
+        if global_step == 230:
+            raise Killed
+
+    with monkeypatch.context() as patch:
+        patch.setattr(offpolicy.OffPolicyRun, "step", damage_then_die)
+        with pytest.raises(Killed):
+            mod.train(mod.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
+    KILLED_WRITERS.extend(record.OPEN_WRITERS)
+    record.OPEN_WRITERS.clear()
+    run_dir = only_run_dir(tmp_path)
+    assert mod.load_checkpoint(run_dir)["global_step"] == 210
+    assert_identical(expected, final_state(resume(mod, run_dir), "sac"))
+
+
+@pytest.mark.parametrize("change", ["folder moved", "replay/ replaced by a file"])
+def test_a_run_folder_changed_while_the_run_trains_is_one_line(change, tmp_path, monkeypatch, capsys):
+    """A fault hunt: a run folder moved away mid-run (`mv runs/x archive/`), or its replay/ replaced by a file, ended
+    in a traceback of 12-40 lines (TensorBoard's writer, the replay files). Now one line that says what happened and
+    how to continue; the moved folder resumes where it is now."""
+    original = offpolicy.OffPolicyRun.step
+
+    def change_at_150(self, actions, buffer, global_step):
+        original(self, actions, buffer, global_step)
+        if global_step == 150 and change == "folder moved":
+            os.rename(self.run_dir, tmp_path / "moved")
+        elif global_step == 150:
+            shutil.rmtree(os.path.join(self.run_dir, "replay"))
+            open(os.path.join(self.run_dir, "replay"), "w").close()
+
+    monkeypatch.setattr(offpolicy.OffPolicyRun, "step", change_at_150)
+    flags = ["--env-id", "Pendulum-v1", "--n", "2", "--k", "300", "--learning-starts", "100", "--batch-size", "32",
+             "--eval-every", "100", "--eval-episodes", "1", "--checkpoint-every", "70", "--quiet",
+             "--track-dir", str(tmp_path / "runs")]
+    code, _, error = cli_in_process(capsys, "cascade_sac.py", *flags)
+    record.OPEN_WRITERS.clear()  # (the failed run's writer: its events file is gone, as in a real process's end)
+    assert code == 1 and error.startswith("error: ") and "\n" not in error, error
+    if change == "folder moved":
+        assert "was moved or deleted while the run trained" in error and "--resume <the folder where it is now>" in error
+        assert not os.listdir(tmp_path / "runs"), "nothing written at the old place"
+        monkeypatch.setattr(offpolicy.OffPolicyRun, "step", original)
+        code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", str(tmp_path / "moved"))
+        assert code == 0 and cs.load_checkpoint(str(tmp_path / "moved"))["global_step"] == 600, error
+    else:
+        assert "the run folder was changed while the run trained" in error and "checkpoint" in error, error
+        assert "put back what was moved or replaced there and continue with: python cascade_sac.py --resume" in error
+
+
 def test_a_resume_named_in_the_same_second_is_read_after_the_killed_run(uninterrupted, tmp_path, monkeypatch):
     """TensorBoard reads a run folder's events files in name order (`...tfevents.<second>.<host>.<pid>.<count>`):
     a resume named within the second of the killed run's file could sort before it (count 10 before 9, or another
