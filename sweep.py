@@ -250,7 +250,11 @@ class Run:
         resumed by the exact command that started it; the resume also repeats every flag, so the
         script itself refuses a checkpoint whose saved settings differ."""
         track_dir = os.path.join(runs_dir, self.run_id)
-        checkpoints = sorted(glob.glob(os.path.join(track_dir, "*", "checkpoint.pt")), key=os.path.getmtime)
+        # a folder whose checkpoint.pt is gone but whose iteration_<i>.pt are there is resumed too: the script then
+        # stops in one line naming the iteration file to continue from (a fault hunt: the sweep started a new run
+        # beside it, the finished iterations unused)
+        checkpoints = sorted(glob.glob(os.path.join(track_dir, "*", "checkpoint.pt"))
+                             + glob.glob(os.path.join(track_dir, "*", "iteration_*.pt")), key=os.path.getmtime)
         command = self.fresh_command(python, track_dir, list(tracking))
         if checkpoints:
             at = command.index("--track-dir")  # the resumed run continues in its own folder
@@ -1054,6 +1058,9 @@ def how_far(command: list[str]) -> str:
     import torch  # (only here: a dry run of new runs needs none)
 
     path = os.path.join(run_dir, "checkpoint.pt")
+    if not os.path.exists(path):
+        return (f"cannot resume {run_dir} by itself: its checkpoint.pt is gone; the run will stop naming the "
+                "iteration_<i>.pt beside it to continue from")
     try:
         saved = torch.load(path, map_location="cpu", weights_only=False)
         step, saved_args = saved["global_step"], saved["args"]

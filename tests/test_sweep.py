@@ -345,6 +345,15 @@ def test_unfinished_run_resumes_from_its_own_checkpoint_only(tmp_path):
     # checkpoint cadence and the tracking go on as they were (only --track-dir goes: the run keeps its folder)
     assert command[4:] == ["--n", "2", "--env-id", "Hopper-v4", "--seed", "3", "--exp-name", "cascade", "--quiet",
                            "--checkpoint-every", "2048", *tracking]
+    # a folder whose checkpoint.pt is gone but whose iteration files are there is the run too (a fault hunt: the
+    # sweep started a new run beside it, its finished iterations unused); the script then names the file to resume
+    later = tmp_path / run.run_id / "Hopper-v4__cascade__3__1790000002"
+    later.mkdir()
+    (later / "iteration_1.pt").write_bytes(b"x")
+    assert run.command("python", str(tmp_path))[2:4] == ["--resume", str(later)]
+    assert sweep.how_far(run.command("python", str(tmp_path))) == (
+        f"cannot resume {later} by itself: its checkpoint.pt is gone; the run will stop naming the iteration_<i>.pt "
+        "beside it to continue from")
 
 
 def test_rerun_with_other_budget_starts_a_new_run(tmp_path):
