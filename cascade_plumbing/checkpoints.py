@@ -181,12 +181,28 @@ def refuse_overwriting_later_work(checkpoint: dict) -> None:
     try:
         later = torch.load(latest, map_location="cpu", weights_only=False)
         later_step = int(later["global_step"])
+        later_run = run_of(later)
     except Exception:  # unreadable: the iteration file is what is left to continue from
         return
+    if later_run != run_of(checkpoint):  # (a fault hunt: loose files of two runs in one folder, resumed one after
+        # the other, each overwrote the other's checkpoint.pt, iteration files and logs)
+        fail(f"--resume {path}: {latest} beside it is another run's ({describe_run(later_run)}, not "
+             f"{describe_run(run_of(checkpoint))}), which continuing here would overwrite; copy {path} into a "
+             "folder of its own and resume it there")
     if later_step > checkpoint["global_step"]:
         fail(f"--resume {path}: the run went on to global_step={later_step:,} ({latest}); continuing from "
              f"global_step={checkpoint['global_step']:,} would overwrite that work in the same folder. Resume "
              f"{latest} instead, or move it away first to redo the run from here")
+
+
+def run_of(checkpoint: dict) -> tuple:
+    """What tells one run from another in its checkpoints: its env, experiment name and seed."""
+    args = checkpoint.get("args") or {}
+    return (args.get("env_id"), args.get("exp_name"), args.get("seed"))
+
+
+def describe_run(run: tuple) -> str:
+    return f"{run[0]}, {run[1]}, seed {run[2]}"
 
 
 def intact_beside(path: str, reader_flag: str = "") -> str:

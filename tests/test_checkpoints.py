@@ -605,6 +605,20 @@ def test_resuming_an_earlier_file_of_a_run_does_not_overwrite_its_later_work(fin
     last = run_dir / "iteration_2.pt"
     code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(last))
     assert code == 0 and "is the end of the run" in out, (out, message)
+    # another run's checkpoint kept in the folder (a fault hunt: loose files of two seeds in one folder, resumed one
+    # after the other, each overwrote the other's checkpoint.pt and iteration files): refused whatever its step
+    other = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+    other["args"]["seed"] += 1
+    other["global_step"] = 0
+    torch.save(other, run_dir / "checkpoint.pt")
+    before = digest(run_dir)
+    line = error_line_in_process("cascade_ppo_continuous.py", "--resume", str(earlier))
+    seed = other["args"]["seed"]
+    assert line == (f"error: --resume {earlier}: {run_dir / 'checkpoint.pt'} beside it is another run's "
+                    f"(Hopper-v4, cascade_ppo_continuous, seed {seed}, not Hopper-v4, cascade_ppo_continuous, seed "
+                    f"{seed - 1}), which continuing here would overwrite; copy {earlier} into a folder of its own and "
+                    "resume it there"), line
+    assert digest(run_dir) == before
     os.rename(run_dir / "checkpoint.pt", tmp_path / "moved_away.pt")
     code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(earlier))
     assert code == 0 and message == "", message
