@@ -187,12 +187,13 @@ class RunRecord:
         # (purge_step), and a SIGKILL right after the checkpoint would lose what the writer still held
         self.writer.flush()
         save_checkpoint(self.checkpoint_path, payload)
+        self.progress.write_file(global_step, self.sps(global_step))  # (a stop's checkpoint: where it stopped)
         if iteration_end is not None:
             atomic_copy(self.checkpoint_path, os.path.join(self.run_dir, f"iteration_{iteration_end}.pt"))
         self.last_checkpoint_step = global_step
 
     def close(self, global_step: int) -> None:
-        self.progress.final(global_step, self.sps(global_step))
+        self.progress.write_file(global_step, self.sps(global_step))
         self.writer.close()
         unlock_run_dir(self.run_dir)
         if self.args.track:

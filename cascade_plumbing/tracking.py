@@ -119,9 +119,10 @@ class Progress:
             except OSError:
                 pass
 
-    def final(self, step: int, sps: float) -> None:
-        """At the run's end: its last line in the file (the periodic write may be up to `interval` old, which left a
-        finished run at 55%); nothing printed. (A run that never reached an update keeps what it had.)"""
+    def write_file(self, step: int, sps: float) -> None:
+        """At a checkpoint and at the run's end: the line as of `step` in the file (the periodic write may be up to
+        `interval` old, which left a finished run at 55%, and a stopped one's resume showing a line from before
+        the stop); nothing printed. (A run that never reached an update keeps what it had.)"""
         if not (self.last_print or self.last_write):
             return
         line, self.line = self.line, False

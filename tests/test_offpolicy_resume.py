@@ -169,6 +169,11 @@ def test_a_stop_writes_a_checkpoint_at_the_next_step_and_resumes_bit_identical(a
     run_dir = only_run_dir(tmp_path)
     assert mod.load_checkpoint(run_dir)["global_step"] == stop_step == runs.SAVED_AT_STOP[-1]
     assert runs.STOPPED_BY == [signal.SIGTERM] and not runs.STOP_REQUESTED
+    # the progress file (sweep.py shows it) says where the run stopped (a fault hunt: it kept a line up to 30 s old,
+    # shown for the resumed run too)
+    if stop_step > TINY["learning_starts"]:  # (a line is first written at the first update)
+        progress = open(os.path.join(run_dir, "progress.txt")).read()
+        assert progress.startswith(f"{stop_step:,}/600 steps"), progress
     runs.CHECKPOINT_ON_STOP.clear()  # (run_main's cleanup after a stop)
     resumed = resume(mod, run_dir)
     assert_identical(expected, final_state(resumed, algo))
