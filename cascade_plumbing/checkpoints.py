@@ -149,6 +149,7 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "", rea
                 beside = (f"; {len(below)} run folders below it have one (e.g. {os.path.dirname(below[-1])}): "
                           "pass one of them")
         fail(f"no checkpoint at {path}; pass a run folder holding {CHECKPOINT_NAME} or a checkpoint file{beside}")
+    stamp = file_stamp(path)
     try:
         # weights_only=False: the file holds numpy statistics and the simulator state; load only your own runs
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)
@@ -166,8 +167,18 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "", rea
     if missing:
         fail(f"{path} is an incomplete {script} checkpoint (no {', '.join(missing)}): not one that {script}.py wrote; "
              "pass a run folder or a checkpoint file it wrote")
-    checkpoint["path"] = path
+    checkpoint["path"], checkpoint["file_stamp"] = path, stamp
     return checkpoint
+
+
+def file_stamp(path: str) -> tuple | None:
+    """Which version of the file at `path` this is (inode, mtime, size; a checkpoint is replaced by a rename), or
+    None where there is none: `RunRecord` checks that the checkpoint it resumes was not replaced since it was read."""
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return None
+    return (stat.st_ino, stat.st_mtime_ns, stat.st_size)
 
 
 def refuse_overwriting_later_work(checkpoint: dict) -> None:

@@ -16,7 +16,14 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from .checkpoints import CHECKPOINT_NAME, atomic_copy, non_finite_advice, repair_iteration_files, save_checkpoint
+from .checkpoints import (
+    CHECKPOINT_NAME,
+    atomic_copy,
+    file_stamp,
+    non_finite_advice,
+    repair_iteration_files,
+    save_checkpoint,
+)
 from .envs import make_render_env
 from .errors import fail
 from .runs import (
@@ -65,6 +72,12 @@ class RunRecord:
         else:
             self.run_dir = os.path.dirname(checkpoint["path"])
         lock_run_dir(self.run_dir)  # before anything in the folder changes
+        if checkpoint is not None and "file_stamp" in checkpoint and file_stamp(checkpoint["path"]) != checkpoint["file_stamp"]:
+            # read before the lock was taken: the run it belongs to went on (and ended) in between (a fault hunt:
+            # this resume then continued from the older state, over the newer one)
+            unlock_run_dir(self.run_dir)
+            fail(f"{checkpoint['path']} was replaced while this process read it (the run was training there until a "
+                 f"moment ago); resume it again: python {os.path.basename(sys.argv[0])} --resume {self.run_dir}")
         RUN_DIR[:] = [self.run_dir]
         if checkpoint is not None:
             # without iteration files: as a run with none finished (only an interrupted write is removed)

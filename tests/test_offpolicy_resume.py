@@ -374,6 +374,26 @@ def test_a_run_folder_changed_while_the_run_trains_is_one_line(change, tmp_path,
         assert "put back what was moved or replaced there and continue with: python cascade_sac.py --resume" in error
 
 
+def test_a_checkpoint_replaced_between_its_read_and_the_lock_is_not_resumed(tmp_path, monkeypatch):
+    """A fault hunt: a resume reads the checkpoint before it takes the run folder's lock; a run still training there
+    that wrote a newer checkpoint (and ended) in between was then continued from the older state, over the newer.
+    Now the resume stops in one line, and resumed again, continues from the newer one."""
+    mod = SCRIPTS["sac"]
+    train_killed_at(monkeypatch, mod, 150, mod.Args(**TINY, buffer_size=250, track_dir=str(tmp_path)))
+    close_killed_writers()
+    run_dir = only_run_dir(tmp_path)
+    read = mod.load_checkpoint(run_dir)
+    newer = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)
+    torch.save(newer, os.path.join(run_dir, "checkpoint.new"))  # (what the other process's next checkpoint does)
+    os.replace(os.path.join(run_dir, "checkpoint.new"), os.path.join(run_dir, "checkpoint.pt"))
+    with pytest.raises(SystemExit) as stop:
+        mod.train(mod.Args(**read["args"]), read)
+    assert f"{read['path']} was replaced while this process read it" in str(stop.value), stop.value
+    assert f"--resume {run_dir}" in str(stop.value) and "\n" not in str(stop.value)
+    record.OPEN_WRITERS.clear()
+    assert resume(mod, run_dir)["global_step"] == 600
+
+
 def test_a_resume_named_in_the_same_second_is_read_after_the_killed_run(uninterrupted, tmp_path, monkeypatch):
     """TensorBoard reads a run folder's events files in name order (`...tfevents.<second>.<host>.<pid>.<count>`):
     a resume named within the second of the killed run's file could sort before it (count 10 before 9, or another
