@@ -253,8 +253,9 @@ class Run:
         # a folder whose checkpoint.pt is gone but whose iteration_<i>.pt are there is resumed too: the script then
         # stops in one line naming the iteration file to continue from (a fault hunt: the sweep started a new run
         # beside it, the finished iterations unused)
-        checkpoints = sorted(glob.glob(os.path.join(track_dir, "*", "checkpoint.pt"))
-                             + glob.glob(os.path.join(track_dir, "*", "iteration_*.pt")), key=os.path.getmtime)
+        folders = os.path.join(glob.escape(track_dir), "*")
+        checkpoints = sorted(glob.glob(os.path.join(folders, "checkpoint.pt"))
+                             + glob.glob(os.path.join(folders, "iteration_*.pt")), key=os.path.getmtime)
         command = self.fresh_command(python, track_dir, list(tracking))
         if checkpoints:
             at = command.index("--track-dir")  # the resumed run continues in its own folder
@@ -416,8 +417,9 @@ def scale_template(script: str, flags: list[str], scale: float,
             return str(max(new, min(MIN_EVAL_EVERY, steps)))
         if name == CADENCE_FLAG:
             return str(max(new, min(MIN_CADENCE, steps)))
-        if batch and name == "--k":  # an off-policy iteration must hold a batch (--keep-buffer: the run)
-            smallest = max(smallest, batch[0] / (steps * batch[1]))
+        if batch and name == "--k":  # an off-policy iteration must hold a batch (--keep-buffer: the run's n of them,
+            # each of the scaled --k rounded: hence whole rows per iteration)
+            smallest = max(smallest, math.ceil(batch[0] / batch[1]) / steps)
         if rollout:
             smallest = max(smallest, rollout / steps)
             new = max(round(steps * scale / rollout), 1) * rollout

@@ -137,6 +137,8 @@ def load_checkpoint(path: str, checkpoint_format: str, older_note: str = "", rea
              "checkpoint file")
     if os.path.isdir(path):
         path = os.path.join(path, CHECKPOINT_NAME)
+    if not os.path.dirname(path):  # `--resume checkpoint.pt` inside the run folder: the run folder is "."
+        path = os.path.join(os.curdir, path)
     if not os.path.isfile(path):
         beside = ""  # a run folder that lost its checkpoint.pt: the iteration file it can continue from
         if glob.glob(os.path.join(glob.escape(os.path.dirname(path)), "iteration_*.pt")):
@@ -181,7 +183,7 @@ def file_stamp(path: str) -> tuple | None:
     return (stat.st_ino, stat.st_mtime_ns, stat.st_size)
 
 
-def refuse_overwriting_later_work(checkpoint: dict) -> None:
+def refuse_overwriting_later_work(checkpoint: dict, may_change: frozenset = frozenset()) -> None:
     """--resume of an earlier file of a run (an iteration_<i>.pt) continues in its folder and overwrites what the
     run did after it: refused while the folder's own checkpoint.pt is readable and further on. (Where checkpoint.pt
     is missing or corrupt, continuing from the iteration file is the way on, as the corrupt-file error advises.)"""
@@ -192,28 +194,36 @@ def refuse_overwriting_later_work(checkpoint: dict) -> None:
     try:
         later = torch.load(latest, map_location="cpu", weights_only=False)
         later_step = int(later["global_step"])
-        later_run = run_of(later)
+        later_run = run_of(later, may_change)
     except Exception:  # unreadable: the iteration file is what is left to continue from
         return
-    if later_run != run_of(checkpoint):  # (a fault hunt: loose files of two runs in one folder, resumed one after
-        # the other, each overwrote the other's checkpoint.pt, iteration files and logs)
-        fail(f"--resume {path}: {latest} beside it is another run's ({describe_run(later_run)}, not "
-             f"{describe_run(run_of(checkpoint))}), which continuing here would overwrite; copy {path} into a "
-             "folder of its own and resume it there")
+    this_run = run_of(checkpoint, may_change)
+    if later_run != this_run:  # (a fault hunt: loose files of two runs in one folder, resumed one after the other,
+        # each overwrote the other's checkpoint.pt, iteration files and logs)
+        fail(f"--resume {path}: {latest} beside it is another run's ({describe_difference(later_run, this_run)}), "
+             f"which continuing here would overwrite; copy {path} into a folder of its own and resume it there")
     if later_step > checkpoint["global_step"]:
         fail(f"--resume {path}: the run went on to global_step={later_step:,} ({latest}); continuing from "
              f"global_step={checkpoint['global_step']:,} would overwrite that work in the same folder. Resume "
              f"{latest} instead, or move it away first to redo the run from here")
 
 
-def run_of(checkpoint: dict) -> tuple:
-    """What tells one run from another in its checkpoints: its env, experiment name and seed."""
-    args = checkpoint.get("args") or {}
-    return (args.get("env_id"), args.get("exp_name"), args.get("seed"))
+def run_of(checkpoint: dict, may_change: frozenset) -> dict:
+    """What tells one run from another in its checkpoints: its settings, but for those a resume may change
+    (`may_change`) and where it logs (a run folder may move)."""
+    return {name: value for name, value in (checkpoint.get("args") or {}).items()
+            if name not in may_change and name != "track_dir"}
 
 
-def describe_run(run: tuple) -> str:
-    return f"{run[0]}, {run[1]}, seed {run[2]}"
+def describe_difference(other: dict, this: dict) -> str:
+    """The run the settings `other` describe against this one: env, experiment and seed, or the first setting that
+    differs where those are the same."""
+    def who(run: dict) -> str:
+        return f"{run.get('env_id')}, {run.get('exp_name')}, seed {run.get('seed')}"
+    if who(other) != who(this):
+        return f"{who(other)}, not {who(this)}"
+    name = next(name for name in sorted({*other, *this}) if other.get(name) != this.get(name))
+    return f"--{name.replace('_', '-')} {other.get(name)}, not {this.get(name)}"
 
 
 def intact_beside(path: str, reader_flag: str = "") -> str:

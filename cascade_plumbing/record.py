@@ -72,12 +72,13 @@ class RunRecord:
         else:
             self.run_dir = os.path.dirname(checkpoint["path"])
         lock_run_dir(self.run_dir)  # before anything in the folder changes
-        if checkpoint is not None and "file_stamp" in checkpoint and file_stamp(checkpoint["path"]) != checkpoint["file_stamp"]:
+        stamp = checkpoint and checkpoint.get("file_stamp")
+        if stamp and file_stamp(checkpoint["path"]) != stamp:
             # read before the lock was taken: the run it belongs to went on (and ended) in between (a fault hunt:
             # this resume then continued from the older state, over the newer one)
             unlock_run_dir(self.run_dir)
-            fail(f"{checkpoint['path']} was replaced while this process read it (the run was training there until a "
-                 f"moment ago); resume it again: python {os.path.basename(sys.argv[0])} --resume {self.run_dir}")
+            fail(f"{checkpoint['path']} was replaced after it was read (the run went on there since); read it again: "
+                 f"python {os.path.basename(sys.argv[0])} --resume {checkpoint['path']}")
         RUN_DIR[:] = [self.run_dir]
         if checkpoint is not None:
             # without iteration files: as a run with none finished (only an interrupted write is removed)

@@ -3,6 +3,7 @@ rows on disk (`ReplayFiles`), so that a checkpoint holds the buffer without rewr
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import zlib
@@ -114,7 +115,8 @@ class ReplayFiles:
         what the checkpoint holds of the buffer."""
         buffer = self.buffer
         first, end = buffer.added - buffer.size, buffer.added
-        os.makedirs(self.folder, exist_ok=True)
+        with contextlib.suppress(FileExistsError):  # (not makedirs: a run folder moved away is not made again here)
+            os.mkdir(self.folder)
         row = max(self.flushed, first)
         if row > first and not self.on_disk(first, row):
             # files of replay/ were deleted or cut short since the last save (a fault hunt: the next checkpoint
@@ -131,7 +133,7 @@ class ReplayFiles:
                 finally:
                     os.close(fd)
                 part, row = part[count:], row + count
-        if end > self.flushed:
+        if end > self.flushed or row < end:
             fsync_dir(self.folder)  # a new segment's name, durable before the checkpoint that needs it
         self.flushed = end
         return {"first": first, "end": end, "start": buffer.start, "crc32": self.crc32(first, end)}

@@ -365,12 +365,13 @@ def changed_under_the_run(exc: BaseException, run_dir: str | None) -> OSError | 
     folder: the folder moved or deleted, replay/ replaced while it trained), or None."""
     if run_dir is None:
         return None
-    inside = os.path.abspath(run_dir) + os.sep
+    folder = os.path.abspath(run_dir)
     while exc is not None:
-        if (isinstance(exc, OSError) and exc.filename and exc.errno in (errno.ENOENT, errno.ENOTDIR, errno.EEXIST,
-                                                                        errno.EISDIR)
-                and os.path.abspath(os.fsdecode(exc.filename)).startswith(inside)):
-            return exc
+        if isinstance(exc, OSError) and exc.filename and exc.errno in (errno.ENOENT, errno.ENOTDIR, errno.EEXIST,
+                                                                       errno.EISDIR):
+            path = os.path.abspath(os.fsdecode(exc.filename))
+            if path == folder or path.startswith(folder + os.sep):
+                return exc
         exc = exc.__cause__
     return None
 
@@ -588,7 +589,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
     if args.resume:
         checkpoint = load_checkpoint(args.resume)
         refuse_another_scripts_checkpoint(checkpoint, args_type, "resume")
-        refuse_overwriting_later_work(checkpoint)
+        refuse_overwriting_later_work(checkpoint, frozenset(RESUME_OVERRIDABLE))
         args = resumed_args(args, checkpoint, given)
     else:
         refuse_idle_flags(args, given)
@@ -648,7 +649,7 @@ def run_main(args_type: type, train: Callable[[Any, dict | None], Any], evaluate
                      f"the run trained, and its checkpoints with it: continue with python "
                      f"{os.path.basename(sys.argv[0])} --resume <the folder where it is now> (if it holds a "
                      "checkpoint.pt; else start again)")
-            stop_short_of(f"cannot write {path} ({changed.strerror}): the run folder was changed while the run "
+            stop_short_of(f"cannot use {path} ({changed.strerror}): the run folder was changed while the run "
                           "trained", "", run_dir, "put back what was moved or replaced there",
                           "start the run again")
         refused = None if isinstance(exc, SystemExit) else refused_write(exc)

@@ -200,8 +200,12 @@ def main(args: Args) -> list[str]:
               *("cascade" for ablation in ablations if "cascade" in ablation[2])}
     missing = [exp for exp in fig2 if exp in needed and exp not in exported]
     if missing:  # checked before anything is written: a half-rebuilt figures folder would mix two sets of runs
-        common.fail(f"{args.runs} has no exported runs of {' or '.join(missing)}; Fig. 2 and the ablations build on "
-                    f"its standard Cascade and PPO runs (`sweep.py --preset reproduce`, then plots/export_results.py)")
+        common.fail(f"{args.runs} has no exported runs of {' or '.join(missing)}; Fig. 2 compares standard Cascade "
+                    "and PPO, and the ablations compare with standard Cascade (`sweep.py --preset reproduce`, then "
+                    "plots/export_results.py)")
+    if not needed and not ablations:
+        common.fail(f"{args.runs} has runs of none of the paper's experiments (Fig. 2's cascade and ppo, the "
+                    f"ablations', Fig. 14-16's); export finished runs of `sweep.py --preset ...` there first")
     for path in common.find_run_dirs([args.runs]):  # a damaged file stops here, not after half the figures
         common.read_run(path)
     before = set(os.listdir(args.out)) if os.path.isdir(args.out) else set()
@@ -216,9 +220,6 @@ def main(args: Args) -> list[str]:
                                                  envs=ablation_envs, experiments=experiments, labels=labels,
                                                  final_window=args.final_window,
                                                  allow_incomplete=args.allow_incomplete))
-    if not sections and not needed:
-        common.fail(f"{args.runs} has runs of none of the paper's experiments (Fig. 2's cascade and ppo, the "
-                    f"ablations', Fig. 14-16's); export finished runs of `sweep.py --preset ...` there first")
     head = summary(args) if needed else (f"# Reproduction of the paper's figures (the runs of "
                                          f"{os.path.normpath(args.runs)})\n\nNo runs of Fig. 2 (standard Cascade "
                                          "and PPO) here: only the figures below.\n")

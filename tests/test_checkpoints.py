@@ -619,6 +619,12 @@ def test_resuming_an_earlier_file_of_a_run_does_not_overwrite_its_later_work(fin
                     f"{seed - 1}), which continuing here would overwrite; copy {earlier} into a folder of its own and "
                     "resume it there"), line
     assert digest(run_dir) == before
+    # ... and one of the same env, experiment and seed but other settings is another run too (review)
+    other["args"]["seed"] -= 1
+    other["args"]["learning_rate"] = 1e-4
+    torch.save(other, run_dir / "checkpoint.pt")
+    line = error_line_in_process("cascade_ppo_continuous.py", "--resume", str(earlier))
+    assert "beside it is another run's (--learning-rate 0.0001, not 0.0003)" in line, line
     os.rename(run_dir / "checkpoint.pt", tmp_path / "moved_away.pt")
     code, out, message = cli_in_process(capsys, "cascade_ppo_continuous.py", "--resume", str(earlier))
     assert code == 0 and message == "", message

@@ -374,6 +374,24 @@ def test_a_run_folder_changed_while_the_run_trains_is_one_line(change, tmp_path,
         assert "put back what was moved or replaced there and continue with: python cascade_sac.py --resume" in error
 
 
+def test_only_a_path_of_the_run_folder_is_a_change_under_the_run(tmp_path):
+    """The one line for a run folder changed mid-run is for its own paths (and the folder itself) only: an unrelated
+    missing file (an edit's open() of a typo) stays the error it is."""
+    import errno
+
+    run_dir = str(tmp_path / "run")
+    gone = OSError(errno.ENOENT, "No such file or directory", os.path.join(run_dir, "replay", "rows_000000.f32"))
+    assert runs.changed_under_the_run(gone, run_dir) is gone
+    folder = FileNotFoundError(errno.ENOENT, "No such file or directory", run_dir)
+    assert runs.changed_under_the_run(folder, run_dir) is folder
+    tensorboard = FileNotFoundError(errno.ENOENT, "No such file", os.fsencode(os.path.join(run_dir, "events.out")))
+    assert runs.changed_under_the_run(tensorboard, run_dir) is tensorboard
+    for elsewhere in (os.path.join(str(tmp_path), "data.csv"), run_dir + "2/checkpoint.pt"):
+        assert runs.changed_under_the_run(OSError(errno.ENOENT, "No such file", elsewhere), run_dir) is None
+    assert runs.changed_under_the_run(OSError(errno.EACCES, "Permission denied", run_dir), run_dir) is None
+    assert runs.changed_under_the_run(gone, None) is None
+
+
 def test_a_checkpoint_replaced_between_its_read_and_the_lock_is_not_resumed(tmp_path, monkeypatch):
     """A fault hunt: a resume reads the checkpoint before it takes the run folder's lock; a run still training there
     that wrote a newer checkpoint (and ended) in between was then continued from the older state, over the newer.
@@ -386,10 +404,12 @@ def test_a_checkpoint_replaced_between_its_read_and_the_lock_is_not_resumed(tmp_
     newer = torch.load(os.path.join(run_dir, "checkpoint.pt"), weights_only=False)
     torch.save(newer, os.path.join(run_dir, "checkpoint.new"))  # (what the other process's next checkpoint does)
     os.replace(os.path.join(run_dir, "checkpoint.new"), os.path.join(run_dir, "checkpoint.pt"))
+    before = {name: os.path.getmtime(os.path.join(run_dir, name)) for name in os.listdir(run_dir)}
     with pytest.raises(SystemExit) as stop:
         mod.train(mod.Args(**read["args"]), read)
-    assert f"{read['path']} was replaced while this process read it" in str(stop.value), stop.value
-    assert f"--resume {run_dir}" in str(stop.value) and "\n" not in str(stop.value)
+    assert f"{read['path']} was replaced after it was read (the run went on there since)" in str(stop.value)
+    assert f"--resume {read['path']}" in str(stop.value) and "\n" not in str(stop.value), stop.value
+    assert {name: os.path.getmtime(os.path.join(run_dir, name)) for name in os.listdir(run_dir)} == before
     record.OPEN_WRITERS.clear()
     assert resume(mod, run_dir)["global_step"] == 600
 
