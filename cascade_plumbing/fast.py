@@ -887,6 +887,16 @@ class FastPaths:
                                     "hand-written update does not", step)
                     return
                 reference = [p.grad.clone() for p in params]
+                # buffers it updated (running statistics kept in the nets): the hand-written update updates none (a
+                # fault hunt of the off-policy scripts: such an edit was ignored, silently)
+                changed = [f"{role}.{name}" for role, twin, module in (("actor", actor64, actor),
+                                                                        ("critic", critic64, critic))
+                           for (name, new), old in zip(twin.named_buffers(), module.buffers())
+                           if not torch.equal(new, old.detach().to(new.dtype))]
+                if changed:
+                    self.switch_off("gradients", f"autograd_gradients changes the buffer {changed[0]}, which the "
+                                    "hand-written update does not", step)
+                    return
                 # NaN where the hand-written update writes nothing: a parameter it does not know of (one an edit
                 # added) then reads as a disagreement here, not as autograd's gradient left in the buffer
                 for param in params:
@@ -956,7 +966,7 @@ class FastPaths:
         if optimized != flat_gradient.numel():
             raise ValueError(f"an optimizer over {optimized} numbers, not the nets' {flat_gradient.numel()}")
         for scale in CHECK_GRADIENT_SCALES:
-            moves = []
+            moves, settings = [], []
             for step_function in (optimizer_step, None):
                 param, twin = float64_optimizer(optimizer)
                 before, gradient = param.detach().clone(), param.grad
@@ -975,6 +985,11 @@ class FastPaths:
                                "section 1's update cannot run as edited (the loop already zeroes that buffer in " \
                                "place before each autograd_gradients: drop the zero_grad or pass set_to_none=False)"
                 moves.append(param.detach() - before)
+                settings.append({key: value for key, value in twin.param_groups[0].items() if key != "params"})
+            if settings[0] != settings[1]:  # e.g. a learning rate decayed after the step: the fast step does not
+                key = next(k for k in sorted({*settings[0], *settings[1]}) if settings[0].get(k) != settings[1].get(k))
+                return (f"optimizer_step leaves the optimizer's {key} at {settings[0].get(key)}, the fast step at "
+                        f"{settings[1].get(key)}")
             error = relative_error([moves[1]], [moves[0]])
             if not error <= FAST_PATH_TOLERANCE:
                 return f"the fast optimizer step (clip, fused Adam) moves the parameters otherwise than " \

@@ -579,6 +579,13 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
             pairs += [(f"the change of {argument_label(labels, i)}'s {name}", [r], [f], max_abs(ref_moves),
                        STEP_TOLERANCE)
                       for name, r, f in zip(names, ref_moves, fast_moves)]
+            # its buffers too: running statistics an edit keeps there and updates in the update (a fault hunt: the
+            # fast update left them at their initial values, which the forward agrees with, silently)
+            ref_buffers, fast_buffers = dict(ref.named_buffers()), dict(new.named_buffers())
+            if set(ref_buffers) != set(fast_buffers):
+                return f"{argument_label(labels, i)} holds other buffers after the fast update", math.inf
+            pairs += [(f"{argument_label(labels, i)}'s buffer {name}", [ref_buffers[name].detach().double()],
+                       [fast_buffers[name].detach().double()], 0.0, TOLERANCE) for name in ref_buffers]
         elif isinstance(original, torch.optim.Optimizer):
             ref_states = [v for p in (p for g in ref.param_groups for p in g["params"]) for v in ref.state[p].values()
                           if isinstance(v, torch.Tensor) and v.dim()]
@@ -588,6 +595,13 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
                 return f"{argument_label(labels, i)} (an optimizer) holds another state", math.inf
             pairs += [(f"{argument_label(labels, i)}'s optimizer state", [r], [f], max_abs(ref_states), TOLERANCE)
                       for r, f in zip(ref_states, new_states)]
+            # and its settings (a fault hunt: a learning rate decayed inside the update was not decayed by the fast
+            # one, silently: the moments do not depend on it, and a small decay moves a step by less than its tolerance)
+            for ref_group, new_group in zip(ref.param_groups, new.param_groups):
+                for key in sorted({*ref_group, *new_group} - {"params"}):
+                    if not same_setting(ref_group.get(key), new_group.get(key)):
+                        return (f"{argument_label(labels, i)}'s {key} is {new_group.get(key)} after the fast update, "
+                                f"{ref_group.get(key)} after the script's"), math.inf
         elif isinstance(original, torch.Tensor):
             pairs.append((argument_label(labels, i), [ref.detach()], [new.detach()], 0.0, TOLERANCE))
     for key in reference_out:
@@ -606,6 +620,17 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
             return f"{what} differs (max relative error {error:.1e})", error
         worst = max(worst, error * TOLERANCE / tolerance)  # in units of TOLERANCE
     return None, worst
+
+
+def same_setting(a: Any, b: Any) -> bool:
+    """Whether two values of an optimizer's setting (lr, betas, eps, ...) are the same, numbers to float rounding."""
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+        return len(a) == len(b) and all(same_setting(x, y) for x, y in zip(a, b))
+    numbers = (int, float, torch.Tensor)
+    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
+        x, y = float(a), float(b)
+        return x == y or abs(x - y) <= TOLERANCE * max(abs(x), abs(y))
+    return a == b
 
 
 @contextlib.contextmanager

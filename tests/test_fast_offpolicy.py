@@ -10,6 +10,7 @@
 """
 
 import copy
+import functools
 import random
 import types
 
@@ -254,6 +255,68 @@ def test_check_catches_an_edit_of_the_script(script, edit, monkeypatch):
     expected = "fails on these nets" if edit == "new parameter" else "differs"
     assert not path.on and len(messages) == 1 and expected in messages[0], messages
     assert "argument " not in messages[0]  # what differs is named as the update names it (`qf`, `q_optimizer`)
+
+
+def decaying_lr(update, factor, first):
+    """An edit (a fault hunt): every optimizer's learning rate decayed inside the update, before or after its steps."""
+    @functools.wraps(update)
+    def edited_update(*arguments):
+        if first:
+            decay(arguments, factor)
+        out = update(*arguments)
+        if not first:
+            decay(arguments, factor)
+        return out
+    return edited_update
+
+
+def decay(arguments, factor):
+    for optimizer in (a for a in arguments if isinstance(a, torch.optim.Optimizer)):
+        for group in optimizer.param_groups:
+            group["lr"] *= factor
+
+
+def updating_a_buffer(update):
+    """An edit (a fault hunt): running statistics kept in a module buffer (here the critic's) and updated in the
+    update, after the forward used them (at their initial values, which change nothing)."""
+    @functools.wraps(update)
+    def edited_update(*arguments):
+        out = update(*arguments)
+        for module in (a for a in arguments if isinstance(a, torch.nn.Module) and hasattr(a, "reward_mean")):
+            module.reward_mean.lerp_(torch.ones_like(module.reward_mean), 0.01)
+        return out
+    return edited_update
+
+
+@pytest.mark.parametrize("script", [cs, cd])
+@pytest.mark.parametrize("edit", ["lr decay after the steps", "slight lr decay before them", "buffer statistics"])
+def test_check_catches_an_edit_of_what_the_update_leaves_besides_the_parameters(script, edit):
+    """A fault hunt: a learning rate decayed inside the update (CleanRL-style), or statistics kept in a module buffer,
+    were silently ignored by the fast update: the moments do not depend on the rate, a decay of 5e-5 moves a step less
+    than its tolerance, and buffers at their initial values change no forward. Now the optimizers' settings and the
+    modules' buffers are compared too: switched off at the first check, the run goes on with the edited update."""
+    state = sac_setup(2, False) if script is cs else ddpg_setup(2, True, "tanh")
+    update = cs.sac_update if script is cs else cd.ddpg_update
+    if edit == "buffer statistics":
+        state["qf"].register_buffer("reward_mean", torch.zeros(()))
+        definition = updating_a_buffer(update)
+    else:
+        definition = decaying_lr(update, 0.995 if "after" in edit else 0.99995, first="before" in edit)
+    messages = []
+    fast = fo.SACFast((cs.LOG_STD_MIN, cs.LOG_STD_MAX)) if script is cs else fo.DDPGFast()
+    path = fo.OffPolicyFastPath(True, fast, announce=lambda message, step: messages.append(message))
+    arguments = sac_arguments if script is cs else ddpg_arguments
+    lr = state["q_optimizer"].param_groups[0]["lr"]
+    out = path.update(definition, *arguments(state, 0, 0), step=0)
+    state["alpha"] = out.get("alpha", 0.0)
+    assert not path.on and len(messages) == 1, messages
+    expected = "qf's buffer reward_mean differs" if edit == "buffer statistics" else "q_optimizer's lr is"
+    assert expected in messages[0], messages
+    # the update of the check's step is the edited one, on the run's own state (nothing missed)
+    if edit == "buffer statistics":
+        assert state["qf"].reward_mean.item() == pytest.approx(0.01)
+    else:
+        assert state["q_optimizer"].param_groups[0]["lr"] == pytest.approx(lr * (0.995 if "after" in edit else 0.99995))
 
 
 def test_check_catches_a_wrong_fast_path(monkeypatch):

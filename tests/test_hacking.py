@@ -74,6 +74,17 @@ def test_autograd_path_gives_the_fast_paths_results(module, budget, tmp_path):
 
 # Edits made the CleanRL way, in a copy of the script: (old text, new text) pairs of section 1.
 EDITS = {
+    # a fault hunt (2026-12-07): what the update leaves besides the gradients and the step, which the fast update
+    # silently ignored in the off-policy scripts: a learning rate decayed after the step, running statistics in a buffer
+    "lr decay in optimizer_step": [("    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n    optimizer.step()\n",
+                                    "    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n    optimizer.step()\n"
+                                    "    for group in optimizer.param_groups:\n        group[\"lr\"] *= 0.99\n")],
+    "buffer statistics": [("        self.fallback_init = fallback_init\n",
+                           "        self.fallback_init = fallback_init\n"
+                           "        self.register_buffer(\"obs_mean\", torch.zeros(obs_dim))\n"),
+                          ("        grads = torch.autograd.grad(loss, params, allow_unused=True)",
+                           "        grads = torch.autograd.grad(loss, params, allow_unused=True)\n"
+                           "        actor.obs_mean.lerp_(obs.mean(0), 0.01)")],
     "loss term": [("loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef",
                    "loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef + 0.01 * mean.pow(2).mean()")],
     "relu base nets": [("hidden = torch.tanh(stacked_affine(", "hidden = torch.relu(stacked_affine(")],
@@ -202,11 +213,13 @@ CASES += [
     ("cascade_ppo_continuous.py", "noisy observations in the loss", ["autograd_gradients"]),
     # no change of the math: the numpy path is switched off, saying why, and the run is act()'s
     ("cascade_ppo_continuous.py", "float32 observations in act", ["needs act to keep the observation's dtype"]),
+    ("cascade_ppo_continuous.py", "lr decay in optimizer_step", ["optimizer_step leaves the optimizer's lr at"]),
+    ("cascade_ppo_continuous.py", "buffer statistics", ["autograd_gradients changes the buffer actor.obs_mean"]),
 ]
 # nothing to compare with the unedited result: a new shape or parameter (equal to its --autograd twin is the check),
 # or the same math written otherwise
 NO_EFFECT = {"squared features", "float32 observations in act", "new parameter", "new parameter (baseline)",
-             "backward"}
+             "backward", "buffer statistics"}
 
 
 TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
