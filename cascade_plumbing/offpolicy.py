@@ -236,7 +236,7 @@ class OffPolicyRun(RunRecord):
         self.eval_calls = checkpoint["eval_calls"]
         self.replay = ReplayFiles(self.run_dir, buffer)
         if needs_buffer:
-            self.replay.restore(checkpoint["replay"], checkpoint["path"])
+            self.replay.restore(checkpoint["replay"], checkpoint["path"], self.args.keep_buffer)
         else:  # the log goes on at the checkpoint's end, as in the run that was not stopped (its rows are not read)
             self.replay.skip_to(checkpoint["replay"]["end"])
         return global_step, iteration, steps_done

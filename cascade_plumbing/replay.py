@@ -163,9 +163,9 @@ class ReplayFiles:
             if (index + 1) * self.SEGMENT_ROWS <= saved["first"]:
                 os.remove(path)
 
-    def restore(self, saved: dict, source: str = "") -> None:
+    def restore(self, saved: dict, source: str = "", keep_buffer: bool = False) -> None:
         """Refill the (new, empty) buffer with the rows a checkpoint recorded (`saved`, of the checkpoint file
-        `source`); one line if they are gone or differ."""
+        `source`, of a run with `keep_buffer` or not); one line if they are gone or differ."""
         buffer, first, end = self.buffer, saved["first"], saved["end"]
         buffer.added, buffer.start = end, saved["start"]
         buffer.size, buffer.pos = end - first, (end - buffer.start) % buffer.capacity
@@ -182,12 +182,13 @@ class ReplayFiles:
                 except OSError:
                     raw = b""
                 if len(raw) != count * self.row_bytes:
-                    self.missing(first, end, source)
+                    self.missing(first, end, source, keep_buffer)
                 part[filled : filled + count] = np.frombuffer(raw, dtype=part.dtype).reshape(count, -1)
                 filled, row = filled + count, row + count
         if self.crc32(first, end) != saved["crc32"]:
             fail(f"the replay rows in {self.folder} differ from what the checkpoint recorded (CRC mismatch); they "
-                 "were changed or belong to another run: resume the run from its own folder's checkpoint.pt")
+                 f"were changed or belong to another run: resume the run from its own folder's checkpoint.pt"
+                 f"{row_free_iteration(source, keep_buffer)}")
         self.flushed = end
 
     def skip_to(self, end: int) -> None:
@@ -195,15 +196,32 @@ class ReplayFiles:
         buffer): the rows before it are not needed, and the next ones get new log rows, not those of old files."""
         self.buffer.added = self.buffer.start = self.flushed = end
 
-    def missing(self, first: int, end: int, source: str) -> None:
+    def missing(self, first: int, end: int, source: str, keep_buffer: bool = False) -> None:
         rows = f"the checkpoint's replay buffer (log rows {first}..{end - 1}) is not in {self.folder}"
         if os.path.basename(source) == "checkpoint.pt":
             # a run folder's latest checkpoint: its rows were beside it when it was written
             fail(f"{rows}: files of replay/ were deleted or moved since the checkpoint was written, or the checkpoint "
                  "was copied out of its run folder without them; resume the original run folder, put the files back, "
-                 "or start a new run")
+                 f"or start a new run{row_free_iteration(source, keep_buffer)}")
         fail(f"{rows}: a checkpoint resumes with its run folder's replay/ files, which keep only what the latest "
              "checkpoint needs; resume the run folder itself (its checkpoint.pt), or start a new run")
+
+
+def row_free_iteration(source: str, keep_buffer: bool) -> str:
+    """For a run folder's checkpoint.pt whose replay rows are lost: "; or ..." naming the newest iteration_<i>.pt beside
+    it, whose resume needs no rows (a new iteration empties the buffer; not with `keep_buffer`), or ""."""
+    if keep_buffer or os.path.basename(source) != "checkpoint.pt":
+        return ""
+    folder = os.path.dirname(source)
+    numbered = []
+    for path in glob.glob(os.path.join(glob.escape(folder), "iteration_*.pt")):
+        with contextlib.suppress(ValueError):
+            numbered.append((int(os.path.basename(path)[len("iteration_"):-3]), path))
+    if not numbered:
+        return ""
+    index, path = max(numbered)
+    return (f"; or continue from the end of iteration {index}, which needs no rows: move {source} aside, then "
+            f"--resume {path}")
 
 
 def segment_name(index: int) -> str:

@@ -533,6 +533,23 @@ def test_missing_or_changed_replay_rows_are_one_line(tmp_path, capsys):
     assert code == 1 and "files of replay/ were deleted or moved since the checkpoint was written" in error, error
 
 
+def test_lost_replay_rows_name_the_iteration_file_that_needs_none(uninterrupted, tmp_path, monkeypatch, capsys):
+    """A fault hunt: a checkpoint.pt whose replay rows were lost said to start a new run, though the end of the
+    previous iteration (iteration_<i>.pt: a new iteration empties the buffer) needs no rows. The line names it and
+    how; followed, the run ends as the uninterrupted one."""
+    expected = uninterrupted("sac", False)[0]
+    train_killed_at(monkeypatch, cs, 563, cs.Args(**TINY, buffer_size=250, track_dir=str(tmp_path / "runs")))
+    close_killed_writers()
+    run_dir = only_run_dir(tmp_path / "runs")
+    shutil.rmtree(os.path.join(run_dir, "replay"))
+    code, _, error = cli_in_process(capsys, "cascade_sac.py", "--resume", run_dir)
+    latest, iteration = os.path.join(run_dir, "checkpoint.pt"), os.path.join(run_dir, "iteration_1.pt")
+    assert code == 1 and error.endswith(f"; or continue from the end of iteration 1, which needs no rows: move "
+                                        f"{latest} aside, then --resume {iteration}"), error
+    os.rename(latest, tmp_path / "aside.pt")
+    assert_identical(expected, final_state(resume(cs, iteration), "sac"))
+
+
 def test_the_final_evaluation_is_logged_before_the_final_checkpoint(tmp_path, monkeypatch):
     """The final checkpoint is written after the last evaluation is logged and on disk: a run killed right after it
     has lost nothing (--resume then has nothing to do)."""
