@@ -699,6 +699,7 @@ class FastPaths:
         self._twins: dict[str, tuple] = {}  # "actor"/"critic" -> (the module, the step it was copied at, copy)
         self._minibatch = (None, 0, False)  # (the update's global_step, its minibatch, check all?): when to check
         self._fully_checked: torch.optim.Optimizer | None = None  # the optimizer whose first update was checked
+        self._checked_buffers: list[torch.Tensor] = []  # the nets' buffers at the latest gradient check
         # the rollout the numpy path acts in: (the actor, its step, the (mean, log-std) of each of its calls)
         self._rollout: tuple[nn.Module, int, list] | None = None
         self._suspects: np.ndarray | None = None  # the last rollout's observations that differed most
@@ -713,6 +714,8 @@ class FastPaths:
             twin = cached[2]
             with torch.no_grad():
                 torch._foreach_copy_([*twin.parameters(), *twin.buffers()], [*module.parameters(), *module.buffers()])
+                for copied, original in zip(twin.modules(), module.modules()):  # (train/eval: a loop may switch it)
+                    copied.training = original.training
                 for param in twin.parameters():
                     if param.grad is None:  # (an edit of section 1 may have dropped it)
                         param.grad = torch.zeros_like(param)
@@ -1013,11 +1016,18 @@ class FastPaths:
         else:  # a new update; if the one before stopped before its last minibatch (--target-kl, a loop edit), it
             # went unchecked: this first minibatch is checked instead
             stopped_early = update_step is not None and index < expected_last
-            index, every = 0, optimizer is not self._fully_checked
+            # every minibatch also where the nets' buffers changed since the latest check (a hack-safety hunt:
+            # observation statistics kept in buffers and updated in the loop, which the hand-written backward of a
+            # net's first layer does not see, trained on for an update's unchecked minibatches)
+            buffers = [b for net in (actor, critic) for b in net.buffers()]
+            moved = len(buffers) != len(self._checked_buffers) or not all(
+                torch.equal(a, b) for a, b in zip(buffers, self._checked_buffers))
+            index, every = 0, optimizer is not self._fully_checked or moved
             self._fully_checked = optimizer
             check = every or stopped_early or expected_last == 0  # (one minibatch per update: it is the last)
         self._minibatch = (step, index, every)
         if check and self.definition is not None:
+            self._checked_buffers = [b.detach().clone() for net in (actor, critic) for b in net.buffers()]
             self.check_update(actor, critic, optimizer, minibatch, args, step)
             if not self.gradients:
                 return None, None

@@ -74,6 +74,28 @@ def test_autograd_path_gives_the_fast_paths_results(module, budget, tmp_path):
 
 # Edits made the CleanRL way, in a copy of the script: (old text, new text) pairs of section 1.
 EDITS = {
+    # a hack-safety hunt (2026-12-07): the critic's input statistics in a buffer, updated in the loop once per update:
+    # the hand-written backward fed the raw observation to the first layer for an update's unchecked minibatches
+    "critic input statistics": [("            self.biases.append(nn.Parameter(bias[0]))\n        self._refresh()",
+                                 "            self.biases.append(nn.Parameter(bias[0]))\n"
+                                 "        self.register_buffer(\"in_mean\", torch.zeros(sizes[0]))\n        self._refresh()"),
+                                ("        *layers, last = self.layers\n        for weight, bias in layers:",
+                                 "        *layers, last = self.layers\n        x = x - self.in_mean\n"
+                                 "        for weight, bias in layers:"),
+                                ("            run.update_done(global_step, optimizer, parts,",
+                                 "            critic.in_mean.copy_(b_obs.mean(0))\n"
+                                 "            run.update_done(global_step, optimizer, parts,")],
+    # ... and dropout in training only, with the loop acting in eval mode: a twin copied in train mode was reused by
+    # the acting check of the same step (a false alarm, acting switched off)
+    "dropout while training": [("            hidden = torch.tanh(stacked_affine(hidden, self.trainable(weight, 0), "
+                                "self.trainable(bias, 0)))",
+                                "            hidden = nn.functional.dropout(torch.tanh(stacked_affine(hidden, "
+                                "self.trainable(weight, 0), self.trainable(bias, 0))), 0.1, self.training)"),
+                               ("            check_obs = np.concatenate(",
+                                "            actor.eval()\n            check_obs = np.concatenate("),
+                               ("            batch = (b_obs, b_actions, b_logprobs, b_advantages, b_returns, b_values)",
+                                "            actor.train()\n"
+                                "            batch = (b_obs, b_actions, b_logprobs, b_advantages, b_returns, b_values)")],
     # a fault hunt (2026-12-07): what the update leaves besides the gradients and the step, which the fast update
     # silently ignored in the off-policy scripts: a learning rate decayed after the step, running statistics in a buffer
     "lr decay in optimizer_step": [("    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n    optimizer.step()\n",
@@ -215,11 +237,13 @@ CASES += [
     ("cascade_ppo_continuous.py", "float32 observations in act", ["needs act to keep the observation's dtype"]),
     ("cascade_ppo_continuous.py", "lr decay in optimizer_step", ["optimizer_step leaves the optimizer's lr at"]),
     ("cascade_ppo_continuous.py", "buffer statistics", ["autograd_gradients changes the buffer actor.obs_mean"]),
+    ("cascade_ppo_continuous.py", "critic input statistics", ["the hand-written gradient of critic.weights.0"]),
+    ("cascade_ppo_continuous.py", "dropout while training", ["computes another loss than autograd_gradients"]),
 ]
 # nothing to compare with the unedited result: a new shape or parameter (equal to its --autograd twin is the check),
 # or the same math written otherwise
 NO_EFFECT = {"squared features", "float32 observations in act", "new parameter", "new parameter (baseline)",
-             "backward", "buffer statistics"}
+             "backward", "buffer statistics", "critic input statistics"}
 
 
 TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
