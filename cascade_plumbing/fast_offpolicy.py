@@ -17,7 +17,7 @@ Nothing here is a definition. `OffPolicyFastPath.update(definition, *arguments)`
 the temperature), from the same random state, on the first updates with each new actor optimizer (each Cascade
 iteration's first, a resumed run's first) and then every CHECK_EVERY updates, and compares what they leave: the
 optimizers' moments (the gradients), every parameter's change, the values the script logs. `act(explore, ...)`
-compares the two actings likewise (CHECK_ROWS draws for the current observation, one for each observation acted on since the previous check) at each new net and every
+compares the two actings likewise (CHECK_ROWS draws for the current observation, FIRST_CHECK_ROWS at a new net, one for each observation acted on since the previous check) at each new net and every
 CHECK_EVERY steps. A disagreement, or an exception, switches that path off for the rest of the run with one warning
 line, and the run continues with the script's own function, as `--autograd` runs it. A script's edit of its nets,
 losses, update or acting therefore either changes both paths alike or shows at the next check, which comes
@@ -57,6 +57,10 @@ TOLERANCE = 1e-8
 STEP_TOLERANCE = 1e-4
 # an acting check draws this many actions for the current observation (repeated), so that an edit of the noise shows
 CHECK_ROWS = 64
+# ... and this many at a new net's first check (a hack-safety hunt: a clip of the noise at 3 sigma passed 64 draws
+# most of the time, and the run acted with the unclipped noise until the next check, ~2000 steps on; 1024 draws of
+# each action dimension meet it but for a chance of ~1e-4 per dimension, at ~0.1 s once a net)
+FIRST_CHECK_ROWS = 1024
 # a change, state or value is compared relative to at least this fraction of the largest of its kind: a parameter
 # whose gradient cancels to ~0 (a bias summed over the batch) has only rounding to compare
 FLOOR = 1e-3
@@ -687,11 +691,13 @@ class OffPolicyFastPath:
         net, a new actor, and every CHECK_EVERY steps)."""
         if self.acting:
             key = self.acting_key
-            if not key or key[0] is not actor or key[1] != actor.size or self.acts >= self.next_acting_check:
+            new = not key or key[0] is not actor or key[1] != actor.size
+            if new or self.acts >= self.next_acting_check:
                 self.acting_key, self.acts, self.next_acting_check = (actor, actor.size), 0, self.gap()
                 acted, self.acted = self.acted, []
                 try:
-                    what = self.check_acting(definition, actor, obs, extra, acted)
+                    what = self.check_acting(definition, actor, obs, extra, acted,
+                                             FIRST_CHECK_ROWS if new else CHECK_ROWS)
                 except Exception as exc:
                     what = f"the numpy acting path fails on this actor ({describe(exc)})"
                 if what is not None:
@@ -705,14 +711,14 @@ class OffPolicyFastPath:
             return definition(actor, observations, *extra).cpu().numpy()
 
     def check_acting(self, definition: Callable[..., torch.Tensor], actor: nn.Module, obs: np.ndarray,
-                     extra: tuple, acted: list[np.ndarray] = ()) -> str | None:
-        """`definition` and the numpy path on a float64 copy of the actor, CHECK_ROWS draws for obs and one for each
+                     extra: tuple, acted: list[np.ndarray] = (), draws: int = CHECK_ROWS) -> str | None:
+        """`definition` and the numpy path on a float64 copy of the actor, `draws` draws for obs and one for each
         observation `acted` on since the previous check (so that an edit acting on some observations only, a clip,
         is met at the next check once the run has acted on one), from the same random state; what differs."""
         start = time.perf_counter()
         try:
             twin = copy.deepcopy(actor).double()
-            rows = np.repeat(obs, CHECK_ROWS, axis=0).astype(np.float64)
+            rows = np.repeat(obs, draws, axis=0).astype(np.float64)
             acted = [a for a in acted if a.shape[1:] == obs.shape[1:]]
             if acted:
                 rows = np.concatenate([rows, *acted]).astype(np.float64)

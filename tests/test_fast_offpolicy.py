@@ -521,6 +521,25 @@ def test_check_catches_an_edit_of_explore(script):
     np.testing.assert_array_equal(action, expected)
 
 
+def explore_noise_clipped_at_3_sigma(actor, obs, noise):
+    action, _, _ = actor(obs)
+    action = action + torch.randn(action.shape).clamp(-3.0, 3.0) * (actor.action_scale * noise)
+    return torch.maximum(torch.minimum(action, actor.action_bias + actor.action_scale),
+                         actor.action_bias - actor.action_scale)
+
+
+def test_an_edit_of_rare_draws_is_caught_at_a_new_nets_first_acting_check():
+    """A hack-safety hunt: DDPG's noise clipped at 3 sigma changes ~0.3% of the draws, and passed the acting check's
+    64 draws most of the time; the run then explored with the unclipped noise until the next check (~2000 steps on).
+    A new net's first check draws 1024 per dimension: caught at the first step, whatever the seed."""
+    for seed in range(20):
+        actor, _, fast, extra = acting_setup(("ddpg", 2, True, "tanh", 0.1))
+        path = fo.OffPolicyFastPath(True, fast)
+        torch.manual_seed(seed)
+        path.act(explore_noise_clipped_at_3_sigma, actor, np.zeros((1, OBS_DIM), np.float32), *extra, step=1)
+        assert not path.acting, seed
+
+
 ou_noise = None  # the Ornstein-Uhlenbeck state of `explore_ou`, a global of this module as it would be of a script
 
 
