@@ -119,6 +119,18 @@ PARTS_SCALE = 1e-2
 GRADIENT_FLOOR = 1e-3
 
 
+def same_values(a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Equal, NaN where NaN (a buffer of inf or NaN sentinels is unchanged, not changed)."""
+    return a.shape == b.shape and bool(((a == b) | (a.isnan() & b.isnan())).all())
+
+
+def changed_buffers(twins: list[tuple[str, nn.Module, nn.Module]]) -> list[str]:
+    """The buffers ("role.name") that differ between each (role, copy, module): what a checked call changed."""
+    return [f"{role}.{name}" for role, twin, module in twins
+            for (name, new), old in zip(twin.named_buffers(), module.buffers())
+            if not same_values(new, old.detach().to(new.dtype))]
+
+
 def relative_error(fast: list[torch.Tensor], reference: list[torch.Tensor], floor: float = 1e-30) -> float:
     """max |fast - reference| / the larger of max |reference| and max |fast| (so a zero reference against a
     non-zero value reads 1, all wrong, not 1e27), and of `floor`: for values that are sums of cancelling O(1)
@@ -491,7 +503,9 @@ def float64_optimizer(optimizer: torch.optim.Optimizer) -> tuple[nn.Parameter, t
     # copy.copy keeps only what __getstate__ returns: the step hooks (register_step_post_hook) are carried over
     twin._optimizer_step_pre_hooks = collections.OrderedDict(optimizer._optimizer_step_pre_hooks)
     twin._optimizer_step_post_hooks = collections.OrderedDict(optimizer._optimizer_step_post_hooks)
-    twin.param_groups = [{**optimizer.param_groups[0], "params": [param]}]
+    # (a tensor setting cloned: an optimizer_step that changes a tensor lr in place would change the run's)
+    twin.param_groups = [{**{key: value.clone() if torch.is_tensor(value) else value
+                             for key, value in optimizer.param_groups[0].items()}, "params": [param]}]
     twin.state = collections.defaultdict(dict)
     for key, value in optimizer.state.get(params[0], {}).items():
         if not torch.is_tensor(value):
@@ -763,6 +777,10 @@ class FastPaths:
                         switch_off(f"act() keeps state between calls ({kept}), while the numpy acting "
                                    "path draws every action afresh")
                         return definition
+                    changed = changed_buffers([("actor", twin, actor)])
+                    if changed:  # (a review: statistics updated while acting, read by no forward, went unseen)
+                        switch_off(f"act() changes the buffer {changed[0]}, which the numpy acting path does not")
+                        return definition
                     if numpy_and_python_streams() != streams:
                         switch_off("act() draws from numpy's or Python's global random numbers, which "
                                    "the numpy acting path (torch's Gaussian noise only) does not")
@@ -892,10 +910,7 @@ class FastPaths:
                 reference = [p.grad.clone() for p in params]
                 # buffers it updated (running statistics kept in the nets): the hand-written update updates none (a
                 # fault hunt of the off-policy scripts: such an edit was ignored, silently)
-                changed = [f"{role}.{name}" for role, twin, module in (("actor", actor64, actor),
-                                                                        ("critic", critic64, critic))
-                           for (name, new), old in zip(twin.named_buffers(), module.buffers())
-                           if not torch.equal(new, old.detach().to(new.dtype))]
+                changed = changed_buffers([("actor", actor64, actor), ("critic", critic64, critic)])
                 if changed:
                     self.switch_off("gradients", f"autograd_gradients changes the buffer {changed[0]}, which the "
                                     "hand-written update does not", step)
@@ -1016,16 +1031,17 @@ class FastPaths:
         else:  # a new update; if the one before stopped before its last minibatch (--target-kl, a loop edit), it
             # went unchecked: this first minibatch is checked instead
             stopped_early = update_step is not None and index < expected_last
-            # every minibatch also where the nets' buffers changed since the latest check (a hack-safety hunt:
-            # observation statistics kept in buffers and updated in the loop, which the hand-written backward of a
-            # net's first layer does not see, trained on for an update's unchecked minibatches)
-            buffers = [b for net in (actor, critic) for b in net.buffers()]
-            moved = len(buffers) != len(self._checked_buffers) or not all(
-                torch.equal(a, b) for a, b in zip(buffers, self._checked_buffers))
-            index, every = 0, optimizer is not self._fully_checked or moved
+            index, every = 0, optimizer is not self._fully_checked
             self._fully_checked = optimizer
             check = every or stopped_early or expected_last == 0  # (one minibatch per update: it is the last)
         self._minibatch = (step, index, every)
+        # and any minibatch whose nets' buffers changed since the latest check (a hack-safety hunt: observation
+        # statistics kept in buffers, updated in the loop and read at a net's input, which the hand-written backward
+        # of its first layer does not see, trained the update's unchecked minibatches on a wrong gradient)
+        buffers = [b for net in (actor, critic) for b in net.buffers()]
+        if len(buffers) != len(self._checked_buffers) or not all(
+                same_values(a, b) for a, b in zip(buffers, self._checked_buffers)):
+            check = True
         if check and self.definition is not None:
             self._checked_buffers = [b.detach().clone() for net in (actor, critic) for b in net.buffers()]
             self.check_update(actor, critic, optimizer, minibatch, args, step)

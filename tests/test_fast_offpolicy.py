@@ -11,6 +11,7 @@
 
 import copy
 import functools
+import math
 import random
 import types
 
@@ -351,6 +352,8 @@ def test_a_check_leaves_the_random_streams_and_the_run_as_without_it():
         if not checked:  # as if these optimizers had been checked already and no check were due
             path.optimizers = (state["q_optimizer"], state["actor_optimizer"], state["a_optimizer"])
             path.updates, path.next_check = 1, 10**9
+            path.update_buffers = [b.clone() for a in sac_arguments(state, 0, 0) if isinstance(a, torch.nn.Module)
+                                   for b in a.buffers()]
         for step in range(3):
             out = path.update(cs.sac_update, *sac_arguments(state, step, step), step=step)
             state["alpha"] = out["alpha"]
@@ -528,6 +531,55 @@ def explore_noise_clipped_at_3_sigma(actor, obs, noise):
                          actor.action_bias - actor.action_scale)
 
 
+class ShiftedCritic(cd.QNetworks):
+    """An edit: the critic's values shifted by a buffer the loop sets (statistics a forward reads)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.register_buffer("shift", torch.zeros(()))
+        self.register_buffer("obs_high", torch.full((OBS_DIM,), math.inf))  # constant, read by nothing
+
+    def forward(self, obs, actions):
+        return super().forward(obs, actions) - self.shift
+
+
+def test_a_buffer_the_loop_changes_brings_the_next_checks_forward():
+    """A review: a buffer changed by the loop between checks (here the critic's shift, read by its forward) went
+    unseen until the periodic check, ~2000 updates on, while the fast update trained on the unshifted values. Now the
+    next update is checked; a constant buffer of inf is no change (it read as one: (inf - inf) is NaN)."""
+    state = ddpg_setup(1, True, "tanh")
+    critic = ShiftedCritic(OBS_DIM, ACT_DIM, hidden_size=32, activation="tanh")
+    critic.load_state_dict({**state["qf"].state_dict(), "shift": torch.zeros(()),
+                            "obs_high": torch.full((OBS_DIM,), math.inf)})
+    state["qf"], state["q_optimizer"] = critic, cd.make_adam(list(critic.parameters()), 3e-4, 1e-5)
+    messages = []
+    path = fo.OffPolicyFastPath(True, fo.DDPGFast(), announce=lambda message, step: messages.append(message))
+    for step in range(1, 6):  # the first (checked), then unchecked ones: nothing changed
+        path.update(cd.ddpg_update, *ddpg_arguments(state, step, step), step=step)
+    assert path.on and path.checks == 1, messages  # (the first update, a complete one)
+    critic.shift.fill_(1.0)  # the loop's edit
+    path.update(cd.ddpg_update, *ddpg_arguments(state, 6, 6), step=6)
+    assert not path.on and len(messages) == 1 and "differs" in messages[0], messages
+
+
+def explore_counting(actor, obs, noise):
+    """An edit: explore counts its calls in a buffer of the actor (read by no forward)."""
+    actor.calls.add_(1)
+    return cd.explore(actor, obs, noise)
+
+
+def test_an_explore_that_changes_a_buffer_switches_acting_off():
+    """A review: a buffer changed inside explore (and read by no forward) was never changed on the numpy path, and
+    no check saw it: the check's own calls changed only its copy."""
+    actor, _, fast, extra = acting_setup(("ddpg", 2, True, "tanh", 0.1))
+    actor.register_buffer("calls", torch.zeros(()))
+    messages = []
+    path = fo.OffPolicyFastPath(True, fast, announce=lambda message, step: messages.append(message))
+    path.act(explore_counting, actor, np.zeros((1, OBS_DIM), np.float32), *extra, step=1)
+    assert not path.acting and "explore changes the buffer actor.calls" in messages[0], messages
+    assert actor.calls.item() == 1  # the step itself acted through the edited explore
+
+
 def test_an_edit_of_rare_draws_is_caught_at_a_new_nets_first_acting_check():
     """A hack-safety hunt: DDPG's noise clipped at 3 sigma changes ~0.3% of the draws, and passed the acting check's
     64 draws most of the time; the run then explored with the unclipped noise until the next check (~2000 steps on).
@@ -614,6 +666,7 @@ def test_an_acting_check_leaves_the_random_stream_and_the_actions_as_without_it(
         path = fo.OffPolicyFastPath(True, fast)
         if not checked:  # as if this actor had been checked and no check were due
             path.acting_key, path.acts, path.next_acting_check = (actor, actor.size), 1, 10**9
+            path.acting_buffers = [b.clone() for b in actor.buffers()]
         torch.manual_seed(9)
         actions.append(path.act(explore, actor, np.ones((1, OBS_DIM), np.float32)))
         states.append(torch.get_rng_state())

@@ -241,3 +241,13 @@ def test_a_loss_that_cancels_to_near_zero_is_no_disagreement():
     assert paths.disagreement(["w"], loss, parts, gradient, loss + 2e-16, parts, gradient) is None
     message = paths.disagreement(["w"], loss, parts, gradient, loss + 1e-9, parts, gradient)
     assert message is not None and "another loss" in message
+
+
+def test_the_optimizer_checks_copy_leaves_the_runs_settings_alone():
+    """A review: the check's float64 copy of the optimizer shared a tensor learning rate with the run's, so an
+    `optimizer_step` that decays it in place changed the run's own rate inside the check."""
+    flat = torch.nn.Parameter(torch.zeros(3))
+    optimizer = torch.optim.Adam([flat], lr=torch.tensor(3e-4), eps=1e-5)
+    _, twin = fast.float64_optimizer(optimizer)
+    twin.param_groups[0]["lr"].mul_(0.5)
+    assert optimizer.param_groups[0]["lr"].item() == pytest.approx(3e-4)

@@ -85,6 +85,13 @@ EDITS = {
                                 ("            run.update_done(global_step, optimizer, parts,",
                                  "            critic.in_mean.copy_(b_obs.mean(0))\n"
                                  "            run.update_done(global_step, optimizer, parts,")],
+    # ... and act() counting its calls in a buffer of the actor (read by no forward): changed on the check's copy only
+    "act counter": [("        self.fallback_init = fallback_init\n",
+                     "        self.fallback_init = fallback_init\n"
+                     "        self.register_buffer(\"calls\", torch.zeros(()))\n"),
+                    ("    with torch.inference_mode():\n        mean, log_std, _, _ = actor(torch.as_tensor(obs, device=",
+                     "    actor.calls.add_(1)\n"
+                     "    with torch.inference_mode():\n        mean, log_std, _, _ = actor(torch.as_tensor(obs, device=")],
     # ... and dropout in training only, with the loop acting in eval mode: a twin copied in train mode was reused by
     # the acting check of the same step (a false alarm, acting switched off)
     "dropout while training": [("            hidden = torch.tanh(stacked_affine(hidden, self.trainable(weight, 0), "
@@ -239,11 +246,12 @@ CASES += [
     ("cascade_ppo_continuous.py", "buffer statistics", ["autograd_gradients changes the buffer actor.obs_mean"]),
     ("cascade_ppo_continuous.py", "critic input statistics", ["the hand-written gradient of critic.weights.0"]),
     ("cascade_ppo_continuous.py", "dropout while training", ["computes another loss than autograd_gradients"]),
+    ("cascade_ppo_continuous.py", "act counter", ["act() changes the buffer actor.calls"]),
 ]
 # nothing to compare with the unedited result: a new shape or parameter (equal to its --autograd twin is the check),
 # or the same math written otherwise
 NO_EFFECT = {"squared features", "float32 observations in act", "new parameter", "new parameter (baseline)",
-             "backward", "buffer statistics", "critic input statistics"}
+             "backward", "buffer statistics", "critic input statistics", "act counter"}
 
 
 TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
