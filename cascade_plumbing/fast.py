@@ -893,6 +893,7 @@ class FastPaths:
                             "update does not apply", step)
             return
         start = time.perf_counter()
+        in_section_1 = False  # is the exception, if any, section 1's own (the edit's error, met by --autograd too)?
         try:
             actor64, critic64 = self.float64_twin("actor", actor, step), self.float64_twin("critic", critic, step)
             names = [f"actor.{n}" for n, _ in actor64.named_parameters()]
@@ -901,7 +902,9 @@ class FastPaths:
             minibatch = tuple(t.detach().double() for t in minibatch)
             with untouched_random_streams():  # an edit may draw random numbers: not from training's streams
                 with KeptState(autograd_gradients, {"args": args}) as watch:  # (its call leaves nothing behind)
+                    in_section_1 = True
                     reference_loss, reference_parts = autograd_gradients(actor64, critic64, params, minibatch, args)
+                    in_section_1 = False
                     kept = watch.changes()
                 if kept:  # (a schedule of args, a counter: on the fast path the function runs only in the checks)
                     self.switch_off("gradients", f"autograd_gradients keeps state between calls ({kept}), which the "
@@ -931,7 +934,10 @@ class FastPaths:
                 if what is None:
                     what = self.optimizer_disagreement(optimizer_step, optimizer, reference, args)
         except Exception as exc:
-            self.switch_off("gradients", f"the hand-written update cannot follow this edit ({describe(exc)})", step)
+            what = (f"autograd_gradients (section 1) itself raised {describe(exc)}: an error of the edit, which "
+                    "--autograd meets too" if in_section_1 else
+                    f"the hand-written update cannot follow this edit ({describe(exc)})")
+            self.switch_off("gradients", what, step)
             return
         finally:
             self.check_seconds += time.perf_counter() - start

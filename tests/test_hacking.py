@@ -742,3 +742,18 @@ def test_the_script_file_of_an_args_class_without_one_is_empty():
     assert script_file(cascade_sac.Args) == "cascade_sac.py"
     cell = type("Args", (), {"__module__": "a_notebook_cell_that_is_no_module"})
     assert script_file(cell) == ""
+
+
+def test_an_error_of_section_1_itself_is_named_as_the_edits(tmp_path, capsys):
+    """A hack-safety hunt: a critic layer frozen with requires_grad_(False) while autograd_gradients differentiates
+    every parameter makes section 1 itself raise (as --autograd does); the warning before that error blamed the
+    hand-written update ("cannot follow this edit"). Now it names section 1's own error."""
+    module = edited_copy("cascade_ppo_continuous.py", [(
+        "    return TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])",
+        "    critic = TanhMLP([obs_dim, 64, 64, 1], [math.sqrt(2), math.sqrt(2), 1.0])\n"
+        "    critic.weights[0].requires_grad_(False)\n    return critic")], tmp_path)
+    with pytest.raises(RuntimeError, match="does not require grad"):
+        train_copy(module, "cascade_ppo_continuous.py", tmp_path / "runs")
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: fast path check")]
+    assert len(warnings) == 1 and "autograd_gradients (section 1) itself raised RuntimeError" in warnings[0], warnings
+    assert "an error of the edit, which --autograd meets too" in warnings[0]
