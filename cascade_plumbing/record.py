@@ -24,7 +24,7 @@ from .checkpoints import (
     repair_iteration_files,
     save_checkpoint,
 )
-from .envs import make_render_env
+from .envs import RunState, make_render_env
 from .errors import fail
 from .runs import (
     OPEN_WRITERS,
@@ -65,6 +65,13 @@ class RunRecord:
         from torch.utils.tensorboard import SummaryWriter
 
         self.args, self.envs = args, envs
+        outer = envs.envs[0] if isinstance(envs, gym.vector.SyncVectorEnv) and envs.envs else None
+        if not hasattr(envs, "call") or (outer is not None and not isinstance(outer, RunState)):
+            # (a hunt of edited copies: a vector wrapper crashed at the first checkpoint, minutes in; one around
+            # make_env's env was left out of the checkpoints, and a resumed run differed silently)
+            wrapper = type(envs if not hasattr(envs, "call") else outer).__name__
+            fail(f"the training envs are wrapped in {wrapper} outside make_env's RunState, whose state checkpoints "
+                 "cannot keep; add the wrapper inside make_env (cascade_plumbing/envs.py), under RunState")
         if args.capture_video:  # here, once the --num-envs workers exist: forked after a render, they hang
             make_render_env(args.env_id).close()  # no OpenGL backend: one line now, not a traceback later
         if checkpoint is None:

@@ -797,3 +797,22 @@ def test_evaluate_capture_video_of_a_read_only_run_folder_is_one_line(small_disk
     assert line == (f"error: --capture-video writes its video beside the checkpoint, and {run_dir} is not writable "
                     "(Read-only file system); copy the run folder somewhere writable and evaluate the copy, or leave "
                     "out --capture-video"), line
+
+
+@pytest.mark.parametrize("where", ["around the vector env", "around make_env's env"])
+def test_envs_wrapped_outside_run_state_are_one_line_before_training(where, tmp_path, monkeypatch):
+    """A hunt of edited copies: a vector wrapper (gymnasium's vector NormalizeReward) crashed with a traceback at the
+    first checkpoint, the steps before it lost; a wrapper around make_env's env kept its state out of the checkpoints,
+    so a resumed run differed silently. Both are refused in one line before any step."""
+    import gymnasium as gym
+
+    original = cs.make_vector_env
+    if where == "around the vector env":
+        monkeypatch.setattr(cs, "make_vector_env", lambda fns: gym.wrappers.vector.NormalizeReward(original(fns)))
+    else:
+        monkeypatch.setattr(cs, "make_vector_env",
+                            lambda fns: original([lambda fn=fn: gym.wrappers.NormalizeReward(fn()) for fn in fns]))
+    with pytest.raises(SystemExit) as stop:
+        cs.train(cs.Args(**TINY, track_dir=str(tmp_path)))
+    assert "wrapped in NormalizeReward outside make_env's RunState" in str(stop.value), stop.value
+    assert "\n" not in str(stop.value) and not os.listdir(tmp_path)
