@@ -43,8 +43,9 @@ from .fast import KeptState, changed_buffers, describe, same_values, untouched_r
 from .offpolicy import step_with_gradients
 
 # A check covers the first update with each new set of optimizers and the first complete one after it (one that
-# also updates the actor, the temperature and the targets: every 2nd by default), then one complete update about
-# every CHECK_EVERY (at random phases); acting at each new net and about every CHECK_EVERY steps. A check costs about
+# also updates the actor, the temperature and the targets: every 2nd by default), then any update about every
+# CHECK_EVERY (at random phases), and the next one whenever the nets' buffers changed; acting at each new net, about
+# every CHECK_EVERY steps and after a buffer of the actor changed. A check costs about
 # six float64 updates (DDPG: ~10 ms, SAC 256-wide: ~50 ms): under 1% of a run at this spacing.
 CHECK_EVERY = 2000
 # Relative differences above which the two updates disagree. The gradients (in Adam's moments), the losses and
