@@ -124,6 +124,11 @@ def same_values(a: torch.Tensor, b: torch.Tensor) -> bool:
     return a.shape == b.shape and bool(((a == b) | (a.isnan() & b.isnan())).all())
 
 
+def moved(buffers: list[torch.Tensor], checked: list[torch.Tensor]) -> bool:
+    """Whether the nets' `buffers` differ from their copies at the latest check (nothing to compare: no buffers)."""
+    return len(buffers) != len(checked) or not all(same_values(a, b) for a, b in zip(buffers, checked))
+
+
 def changed_buffers(twins: list[tuple[str, nn.Module, nn.Module]]) -> list[str]:
     """The buffers ("role.name") that differ between each (role, copy, module): what a checked call changed."""
     return [f"{role}.{name}" for role, twin, module in twins
@@ -1045,11 +1050,10 @@ class FastPaths:
         # statistics kept in buffers, updated in the loop and read at a net's input, which the hand-written backward
         # of its first layer does not see, trained the update's unchecked minibatches on a wrong gradient)
         buffers = [b for net in (actor, critic) for b in net.buffers()]
-        if len(buffers) != len(self._checked_buffers) or not all(
-                same_values(a, b) for a, b in zip(buffers, self._checked_buffers)):
+        if moved(buffers, self._checked_buffers):
             check = True
         if check and self.definition is not None:
-            self._checked_buffers = [b.detach().clone() for net in (actor, critic) for b in net.buffers()]
+            self._checked_buffers = [b.detach().clone() for b in buffers]
             self.check_update(actor, critic, optimizer, minibatch, args, step)
             if not self.gradients:
                 return None, None

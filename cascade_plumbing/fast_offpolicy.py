@@ -39,7 +39,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from .fast import KeptState, changed_buffers, describe, same_values, untouched_random_streams
+from .fast import KeptState, changed_buffers, describe, moved, same_values, untouched_random_streams
 from .offpolicy import step_with_gradients
 
 # A check covers the first update with each new set of optimizers and the first complete one after it (one that
@@ -626,11 +626,6 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
             return f"{what} differs (max relative error {error:.1e})", error
         worst = max(worst, error * TOLERANCE / tolerance)  # in units of TOLERANCE
     return None, worst
-
-
-def moved(buffers: list[torch.Tensor], checked: list[torch.Tensor]) -> bool:
-    """Whether the nets' `buffers` differ from their copies at the latest check (nothing to compare: no buffers)."""
-    return len(buffers) != len(checked) or not all(same_values(a, b) for a, b in zip(buffers, checked))
 
 
 def same_setting(a: Any, b: Any) -> bool:
