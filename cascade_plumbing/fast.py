@@ -117,11 +117,26 @@ FAST_PATH_TOLERANCE = 1e-9
 # are built from O(1) numbers (normalized advantages, ratios near 1), and some are near zero by cancellation.
 PARTS_SCALE = 1e-2
 GRADIENT_FLOOR = 1e-3
+# Two values of an optimizer setting (lr, betas, eps) that a section-1 step and a fast step leave are the same
+# within this relative difference: float64 rounding of a setting an edit recomputes, not a changed schedule.
+SETTING_TOLERANCE = 1e-8
 
 
 def same_values(a: torch.Tensor, b: torch.Tensor) -> bool:
     """Equal, NaN where NaN (a buffer of inf or NaN sentinels is unchanged, not changed)."""
     return a.shape == b.shape and bool(((a == b) | (a.isnan() & b.isnan())).all())
+
+
+def same_setting(a: Any, b: Any) -> bool:
+    """Whether two values of an optimizer's setting (lr, betas, eps, ...) are the same, numbers to float64 rounding (a
+    tensor lr as a float; a list as the tuple it equals): the PPO and off-policy checks compare settings alike."""
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+        return len(a) == len(b) and all(same_setting(x, y) for x, y in zip(a, b))
+    numbers = (int, float, torch.Tensor)
+    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
+        x, y = float(a), float(b)
+        return x == y or abs(x - y) <= SETTING_TOLERANCE * max(abs(x), abs(y))
+    return a == b
 
 
 def moved(buffers: list[torch.Tensor], checked: list[torch.Tensor]) -> bool:
@@ -1015,10 +1030,10 @@ class FastPaths:
                                "place before each autograd_gradients: drop the zero_grad or pass set_to_none=False)"
                 moves.append(param.detach() - before)
                 settings.append({key: value for key, value in twin.param_groups[0].items() if key != "params"})
-            if settings[0] != settings[1]:  # e.g. a learning rate decayed after the step: the fast step does not
-                key = next(k for k in sorted({*settings[0], *settings[1]}) if settings[0].get(k) != settings[1].get(k))
-                return (f"optimizer_step leaves the optimizer's {key} at {settings[0].get(key)}, the fast step at "
-                        f"{settings[1].get(key)}")
+            for key in sorted({*settings[0], *settings[1]}):  # e.g. a learning rate decayed after the step, which
+                if not same_setting(settings[0].get(key), settings[1].get(key)):  # the fast step does not do
+                    return (f"optimizer_step leaves the optimizer's {key} at {settings[0].get(key)}, the fast step "
+                            f"at {settings[1].get(key)}")
             error = relative_error([moves[1]], [moves[0]])
             if not error <= FAST_PATH_TOLERANCE:
                 return f"the fast optimizer step (clip, fused Adam) moves the parameters otherwise than " \

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from .fast import KeptState, changed_buffers, describe, moved, same_values, untouched_random_streams
+from .fast import KeptState, changed_buffers, describe, moved, same_setting, same_values, untouched_random_streams
 from .offpolicy import step_with_gradients
 
 # A check covers the first update with each new set of optimizers and the first complete one after it (one that
@@ -626,17 +626,6 @@ def disagreement(arguments: tuple, reference: tuple, fast: tuple, reference_out:
             return f"{what} differs (max relative error {error:.1e})", error
         worst = max(worst, error * TOLERANCE / tolerance)  # in units of TOLERANCE
     return None, worst
-
-
-def same_setting(a: Any, b: Any) -> bool:
-    """Whether two values of an optimizer's setting (lr, betas, eps, ...) are the same, numbers to float rounding."""
-    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
-        return len(a) == len(b) and all(same_setting(x, y) for x, y in zip(a, b))
-    numbers = (int, float, torch.Tensor)
-    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
-        x, y = float(a), float(b)
-        return x == y or abs(x - y) <= TOLERANCE * max(abs(x), abs(y))
-    return a == b
 
 
 @contextlib.contextmanager

@@ -108,6 +108,11 @@ EDITS = {
     "lr decay in optimizer_step": [("    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n    optimizer.step()\n",
                                     "    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n    optimizer.step()\n"
                                     "    for group in optimizer.param_groups:\n        group[\"lr\"] *= 0.99\n")],
+    # the same settings written otherwise (a list for Adam's tuple): the fast step keeps on, as off-policy's does
+    "betas rewritten in optimizer_step": [("    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n    optimizer.step()\n",
+                                           "    nn.utils.clip_grad_norm_([flat_params], args.max_grad_norm)\n    optimizer.step()\n"
+                                           "    for group in optimizer.param_groups:\n"
+                                           "        group[\"betas\"] = [float(beta) for beta in group[\"betas\"]]\n")],
     "buffer statistics": [("        self.fallback_init = fallback_init\n",
                            "        self.fallback_init = fallback_init\n"
                            "        self.register_buffer(\"obs_mean\", torch.zeros(obs_dim))\n"),
@@ -243,6 +248,7 @@ CASES += [
     # no change of the math: the numpy path is switched off, saying why, and the run is act()'s
     ("cascade_ppo_continuous.py", "float32 observations in act", ["needs act to keep the observation's dtype"]),
     ("cascade_ppo_continuous.py", "lr decay in optimizer_step", ["optimizer_step leaves the optimizer's lr at"]),
+    ("cascade_ppo_continuous.py", "betas rewritten in optimizer_step", []),
     ("cascade_ppo_continuous.py", "buffer statistics", ["autograd_gradients changes the buffer actor.obs_mean"]),
     ("cascade_ppo_continuous.py", "critic input statistics", ["the hand-written gradient of critic.weights.0"]),
     ("cascade_ppo_continuous.py", "dropout while training", ["computes another loss than autograd_gradients"]),
@@ -251,7 +257,7 @@ CASES += [
 # nothing to compare with the unedited result: a new shape or parameter (equal to its --autograd twin is the check),
 # or the same math written otherwise
 NO_EFFECT = {"squared features", "float32 observations in act", "new parameter", "new parameter (baseline)",
-             "backward", "buffer statistics", "critic input statistics", "act counter"}
+             "backward", "betas rewritten in optimizer_step", "buffer statistics", "critic input statistics", "act counter"}
 
 
 TINY_ARGS = dict(env_id="Hopper-v4", **TINY)
