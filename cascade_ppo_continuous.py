@@ -868,7 +868,7 @@ def validate(args: Args) -> None:
         fail(f"--k {args.k} is smaller than one rollout batch (num_envs*num_steps = {batch_size}); raise --k")
     if args.freeze_previous and args.start_full:
         fail("--freeze-previous and --start-full cannot be combined (no such ablation in the paper)")
-    check_box_env(args.env_id)
+    check_box_env(args.env_id, discrete_script="cascade_ppo_discrete.py")
 
 
 # ----------------------------------------------------------------------------------------------

@@ -625,7 +625,7 @@ def validate(args: Args, new_run: bool = True) -> None:
     if new_run and args.lr_schedule != "cyclic" and asked_for(args, "cycle_steps", Args.cycle_steps):  # (older runs resume)
         fail(f"--cycle-steps has no effect with --lr-schedule {args.lr_schedule}; add --lr-schedule cyclic or drop "
              "--cycle-steps")
-    check_box_env(args.env_id)
+    check_box_env(args.env_id, discrete_script="ppo_baseline_discrete.py")
 
 
 def evaluate_saved(args: Args) -> dict:

@@ -98,7 +98,7 @@ class Args:
     learning_rate: float = 2.5e-4
     """initial learning rate of the optimizer"""
     num_envs: int = 4
-    """number of parallel training environments"""
+    """training envs, stepped one after another in this process (a gymnasium SyncVectorEnv, as CleanRL ppo.py)"""
     num_steps: int = 128
     """steps per environment per rollout"""
     gamma: float = 0.99

@@ -540,6 +540,11 @@ def expand(args: Args) -> list[Run]:
             if flag_name(flag) in SWEEP_FLAGS:
                 fail(f"'{template}' sets {flag_name(flag)}, which the sweep sets for each run itself: give "
                      "env ids with --envs and seeds with --seeds, and the sweep folder with --sweep-dir")
+            if flag_name(flag) in ("--quiet", "--no-quiet"):  # (--no-quiet was overridden by the --quiet put after it)
+                fail(f"'{template}' sets {flag_name(flag)}: the sweep runs every script with --quiet and shows each "
+                     "run's progress in its own status lines; leave it out")
+            if flag in ("-h", "--help"):
+                fail(f"'{template}' asks for --help, which runs nothing: read the flags with `python {script} --help`")
         canonical = canonical_flags(flags)
         template_flags, cadence, _, _ = scale_template(script, canonical, args.scale, template)
         written = None if canonical == flags else scale_template(script, flags, args.scale, template)[0]
@@ -801,12 +806,13 @@ def check_envs(runs: list[Run]) -> None:
     line now instead of a failed run per seed and template later."""
     import gymnasium as gym
 
-    from cascade_plumbing.envs import probe_spaces
+    from cascade_plumbing.envs import check_flat_observations, probe_spaces
 
     warnings.filterwarnings("ignore", message=".*is out of date.*")  # the paper's v4 tasks, as in the scripts
 
     for env_id in dict.fromkeys(run.env_id for run in runs):
-        action_space, _ = probe_spaces(env_id)
+        action_space, observation_space = probe_spaces(env_id)
+        check_flat_observations(env_id, observation_space)  # what every script needs
         scripts = sorted({run.script for run in runs
                           if run.env_id == env_id and os.path.normpath(run.script) in CONTINUOUS_SCRIPTS})
         if scripts and not isinstance(action_space, gym.spaces.Box):

@@ -17,7 +17,7 @@ import torch
 
 from . import envs as plumbing_envs
 from .checkpoints import non_finite_advice
-from .envs import OBS_CLIP, obs_statistics, probe_spaces
+from .envs import OBS_CLIP, check_flat_observations, obs_statistics, probe_spaces
 from .errors import fail
 from .evaluation import EvaluationEnvs, open_saved_model, save_video_of_one_episode
 from .record import RunRecord
@@ -99,8 +99,7 @@ def resolve_env(args: Any, continuous_script: str) -> tuple[bool, bool]:
     """Probe --env-id and refuse what a discrete script cannot run, in one line (`continuous_script`: the one to
     use instead for a Box task with --discretize off). Returns (discretize, normalize) as they apply to this env."""
     action_space, observation_space = probe_spaces(args.env_id, "CartPole-v1, Hopper-v4")
-    if not isinstance(observation_space, gym.spaces.Box):
-        fail(f"{args.env_id} has a {type(observation_space).__name__} observation space; this script needs a Box one")
+    check_flat_observations(args.env_id, observation_space)
     if isinstance(action_space, gym.spaces.Discrete):
         if args.discretize == "on":
             fail(f"--discretize on needs a Box action space, but {args.env_id} is already discrete "

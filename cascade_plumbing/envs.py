@@ -68,6 +68,18 @@ def probe_spaces(env_id: str, examples: str = "Ant-v4, Hopper-v5") -> tuple[gym.
     return spaces
 
 
+def check_flat_observations(env_id: str, observation_space: gym.Space) -> None:
+    """One line unless --env-id observes a flat (1-D) Box, what every script's MLPs take in: an image, a Dict (goal
+    envs) or a Discrete observation (FrozenLake) would reach the nets misshapen and fail deep inside the run."""
+    if isinstance(observation_space, gym.spaces.Box) and len(observation_space.shape) == 1:
+        return
+    what = (f"observations of shape {observation_space.shape}" if isinstance(observation_space, gym.spaces.Box)
+            else f"a {type(observation_space).__name__} observation space")
+    fail(f"{env_id} has {what}; these scripts' MLPs need a flat (1-D) Box of observations: pick an env that "
+         "observes a vector (Hopper-v4, CartPole-v1), or flatten its observations in make_env "
+         "(cascade_plumbing/envs.py)")
+
+
 def find_wrapper(env: gym.Env, wrapper_type: type) -> gym.Wrapper | None:
     while isinstance(env, gym.Wrapper):
         if isinstance(env, wrapper_type):

@@ -13,7 +13,7 @@ import torch
 import torch.nn as nn
 
 from . import envs as envs_module
-from .envs import OBS_CLIP, probe_spaces
+from .envs import OBS_CLIP, check_flat_observations, probe_spaces
 from .errors import fail
 
 
@@ -55,7 +55,7 @@ def check_ppo_settings(args: Any) -> int:
         fail(f"a minibatch of one row (batch {batch_size} in --num-minibatches {args.num_minibatches}) cannot "
              "normalize its advantages (--norm-adv); lower --num-minibatches, raise --num-steps or --num-envs, or "
              "pass --no-norm-adv")
-    if args.eval_every < 0 or (args.eval_every and args.eval_episodes < 1):
+    if args.eval_every < 0 or args.eval_episodes < 1:  # (also with --eval-every 0: a negative count is no setting)
         fail("--eval-every must be >= 0 and --eval-episodes >= 1")
     return batch_size
 
@@ -71,13 +71,14 @@ def baseline_updates(args: Any, batch_size: int) -> int:
     return cycles * (args.cycle_steps // batch_size) + rest // batch_size
 
 
-def check_box_env(env_id: str) -> None:
-    """--env-id is registered and acts in a Box (continuous) action space; otherwise one line (naming the discrete
-    script for a discrete env)."""
-    action_space, _ = probe_spaces(env_id)
+def check_box_env(env_id: str, discrete_script: str) -> None:
+    """--env-id is registered, observes a flat Box and acts in a Box (continuous) action space; otherwise one line
+    (naming `discrete_script`, the discrete twin of the caller, for a discrete env)."""
+    action_space, observation_space = probe_spaces(env_id)
+    check_flat_observations(env_id, observation_space)  # first: no script of ours runs an env that fails it
     if not isinstance(action_space, gym.spaces.Box):
         fail(f"{env_id} has a {type(action_space).__name__} action space; this script needs a Box "
-             "(continuous) one: use cascade_ppo_discrete.py")
+             f"(continuous) one: use {discrete_script}")
 
 
 def count_parameters(*modules: nn.Module) -> int:

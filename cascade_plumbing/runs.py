@@ -151,10 +151,12 @@ def refuse_idle_flags(args: Any, given: set[str]) -> None:
              ("deterministic", "applies to --evaluate only (training evaluates the stochastic policy, as the paper)")]
     if not args.track:
         rules += [(name, "applies with --track only") for name in ("wandb_project_name", "wandb_entity", "wandb_group")]
-    if getattr(args, "n", 2) == 1 and not getattr(args, "start_full", False):
+    if getattr(args, "n", 2) == 1:
         rules += [(name, "has no effect with --n 1 (no base net is added)")
-                  for name in ("keep_buffer", "reset_critic", "fallback_init", "freeze_previous")
+                  for name in ("keep_buffer", "reset_critic", "fallback_init", "freeze_previous", "start_full")
                   if hasattr(args, name)]
+        if getattr(args, "lr_schedule", None) == "global":  # one iteration: its cycle is the whole run
+            rules.append(("lr_schedule", "global is the standard cyclic schedule with --n 1 (one iteration)"))
     # (the nets alone are evaluated with the periodic evaluation only; --eval-episodes, a number, is let be: a job
     # script may turn the evaluation off by appending --eval-every 0 to its flags)
     if getattr(args, "eval_every", None) == 0:

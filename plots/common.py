@@ -15,6 +15,7 @@ import math
 import os
 import re
 import sys
+import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NoReturn
@@ -234,8 +235,10 @@ def check_cli(args: Any) -> None:
             existing = os.path.dirname(existing)
         if not os.path.isdir(existing):
             fail(f"--out {out}: {existing} is a file, not a folder; pass a folder for the output")
-        if not os.access(existing, os.W_OK):
-            fail(f"--out {out}: {existing} cannot be written; pass a folder you can write to")
+        try:  # a real probe, nothing left behind: os.access says yes to root on a read-only or virtual file system
+            os.rmdir(tempfile.mkdtemp(dir=existing))
+        except OSError as exc:
+            fail(f"--out {out}: {existing} cannot be written ({exc.strerror or exc}); pass a folder you can write to")
     name = getattr(args, "name", None)
     if isinstance(name, str) and (not name.strip() or "/" in name or os.sep in name):
         fail(f"--name {name!r}: give a file name without a folder (the files go to --out)")

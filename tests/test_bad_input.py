@@ -22,7 +22,9 @@ def cases(script):
     rates = {"cascade_sac": [("policy_lr", "--policy-lr"), ("q_lr", "--q-lr")]}.get(script, [("learning_rate",
                                                                                                 "--learning-rate")])
     out = [(dict(seed=-1), "--seed must be a non-negative integer"),
-           (dict(torch_threads=0), "--torch-threads must be at least 1")]
+           (dict(torch_threads=0), "--torch-threads must be at least 1"),
+           # with evaluation off too (a fresh-user hunt: -1 episodes was accepted, and the run trained)
+           (dict(eval_episodes=-1, eval_every=0), "--eval-episodes >= 1")]
     if script not in ("cascade_sac", "cascade_ddpg"):  # they checkpoint at iteration ends only
         out.append((dict(checkpoint_every=-1), "--checkpoint-every must be >= 0"))
     out += [({field: -1.0}, f"{flag} must be >= 0") for field, flag in rates]
@@ -132,6 +134,56 @@ def test_a_registered_env_whose_package_is_missing_is_one_line(script, tmp_path)
     assert text == ('error: cannot make MissingPackage-v0: Box2D is not installed, run `pip install "gymnasium[box2d]"`; '
                     "install what it needs, or pick another --env-id"), text
     assert not (tmp_path / "runs").exists()
+
+
+class ShapedObservationEnv(gym.Env):
+    """An env whose observations no script's MLP takes: an image, or a Dict (goal envs)."""
+
+    def __init__(self, observation_space, action_space):
+        self.observation_space, self.action_space = observation_space, action_space
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+BOX_ACTIONS, TWO_ACTIONS = gym.spaces.Box(-1.0, 1.0, (2,)), gym.spaces.Discrete(2)
+IMAGE, VECTOR = gym.spaces.Box(0.0, 1.0, (8, 8, 3)), gym.spaces.Box(-1.0, 1.0, (3,))
+SHAPED_ENVS = {"CascadeTestImage-v0": (IMAGE, BOX_ACTIONS), "CascadeTestImageDiscrete-v0": (IMAGE, TWO_ACTIONS),
+               "CascadeTestDict-v0": (gym.spaces.Dict({"observation": VECTOR, "goal": VECTOR}), BOX_ACTIONS)}
+for env_id, spaces in SHAPED_ENVS.items():
+    gym.register(id=env_id, entry_point=ShapedObservationEnv, kwargs=dict(zip(("observation_space", "action_space"),
+                                                                             spaces)), max_episode_steps=5)
+
+
+@pytest.mark.parametrize("env_id,what", [("CascadeTestImage-v0", "observations of shape (8, 8, 3)"),
+                                         ("CascadeTestImageDiscrete-v0", "observations of shape (8, 8, 3)"),
+                                         ("CascadeTestDict-v0", "a Dict observation space"),
+                                         ("FrozenLake-v1", "a Discrete observation space")])
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_observations_that_are_not_a_flat_box_are_one_line(script, env_id, what, tmp_path):
+    """An image or Dict observation was a traceback deep in the PPO scripts' first rollout (a fresh-user hunt,
+    2026-12-08), and FrozenLake-v1 sent the continuous scripts' user to the discrete ones, which then refused it: the
+    observations are checked first, alike in every script."""
+    module = importlib.import_module(script)
+    with pytest.raises(SystemExit) as stop:
+        module.train(module.Args(env_id=env_id, track_dir=str(tmp_path / "runs")))
+    text = str(stop.value)
+    assert text.startswith(f"error: {env_id} has {what};") and "flat (1-D) Box" in text and "\n" not in text, text
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("script,twin", [("cascade_ppo_continuous", "cascade_ppo_discrete.py"),
+                                         ("ppo_baseline", "ppo_baseline_discrete.py")])
+def test_a_discrete_env_names_the_discrete_twin_of_the_script(script, twin, tmp_path):
+    """ppo_baseline.py sent a user with CartPole-v1 to cascade_ppo_discrete.py, not to its own discrete twin."""
+    module = importlib.import_module(script)
+    with pytest.raises(SystemExit) as stop:
+        module.train(module.Args(env_id="CartPole-v1", track_dir=str(tmp_path / "runs")))
+    assert str(stop.value).endswith(f"this script needs a Box (continuous) one: use {twin}"), stop.value
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
@@ -244,6 +296,10 @@ IDLE_FLAGS = [  # (script, flags, the line): flags a training run cannot act on,
     # (a fault hunt: accepted silently, the PPO scripts evaluate the nets alone with the periodic evaluation only)
     ("cascade_ppo_continuous", ["--eval-every", "0", "--eval-members"], "--eval-members has no effect with --eval-"),
     ("ppo_baseline", ["--eval-every", "0", "--eval-in-worker"], "--eval-in-worker has no effect with --eval-every 0"),
+    # (a fresh-user hunt, 2026-12-08: each ran with exit 0, the same run as without them)
+    ("cascade_ppo_continuous", ["--n", "1", "--start-full"], "--start-full has no effect with --n 1"),
+    ("cascade_ppo_discrete", ["--n", "1", "--lr-schedule", "global"], "--lr-schedule global is the standard cyclic "
+                                                                       "schedule with --n 1"),
 ]
 
 

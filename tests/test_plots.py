@@ -486,6 +486,12 @@ def test_each_name_and_folder_a_command_line_gives_is_checked(runs, tmp_path):
     for out in (a_file, a_file / "below"):
         assert "is a file, not a folder" in error_of(lambda out=out: common.check_cli(learning_curves.Args(
             runs=track, out=str(out))))
+    # a folder where nothing can be made, even by root, whom os.access lets write anywhere (a fresh-user hunt: a
+    # traceback from os.makedirs after the figures were computed)
+    if sys.platform.startswith("linux"):
+        message = error_of(lambda: common.check_cli(learning_curves.Args(runs=track, out="/proc/cascade_figures")))
+        assert message.startswith("error: --out /proc/cascade_figures: /proc cannot be written (") and \
+            "pass a folder you can write to" in message, message
     for name in ("sub/x", ""):
         assert "--name" in error_of(lambda name=name: common.check_cli(learning_curves.Args(runs=track, name=name)))
     script = os.path.join(ROOT, "plots", "fallback.py")

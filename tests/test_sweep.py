@@ -186,7 +186,13 @@ def test_bad_templates_and_scales_are_one_line():
              (["--preset", "sac", "--envs", "CartPole-v1"], "--envs CartPole-v1 has a Discrete action space, and "
               "cascade_sac.py needs a Box (continuous) one"),
              (["--command", "cascade_ddpg.py", "--envs", "CartPole-v1"], "cascade_ddpg.py needs a Box"),
-             (["--preset", "discrete", "--envs", "Hopper-v4", "Hoper-v4"], "unknown env id 'Hoper-v4'")]
+             (["--preset", "discrete", "--envs", "Hopper-v4", "Hoper-v4"], "unknown env id 'Hoper-v4'"),
+             (["--preset", "discrete", "--envs", "FrozenLake-v1"], "FrozenLake-v1 has a Discrete observation space; "
+              "these scripts' MLPs need a flat (1-D) Box"),
+             # (a fresh-user hunt: the sweep's --quiet, put after the template, overrode its --no-quiet silently)
+             (["--command", "cascade_sac.py --no-quiet"], "sets --no-quiet: the sweep runs every script with --quiet"),
+             (["--command", "ppo_baseline.py -h"], "asks for --help, which runs nothing: read the flags with "
+              "`python ppo_baseline.py --help`")]
     for extra, message in cases:
         assert message in error_line(run_script("sweep.py", *extra, "--dry-run")), extra
 
