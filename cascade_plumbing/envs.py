@@ -38,17 +38,23 @@ def makeable(env_id: str) -> bool:
         return False
 
 
+def makeable_neighbours(env_id: str) -> list[str]:
+    """Up to 3 ids close to `env_id` that can be made here: its other versions (the same version first, then the
+    newest), then close spellings; not Hopper-v3, which needs the retired mujoco-py."""
+    import difflib
+
+    base = env_id.split("-v")[0].lower()
+    version = env_id.rsplit("-v", 1)[-1] if "-v" in env_id else None
+    versions = sorted((i for i in gym.envs.registry if i.split("-v")[0].lower() == base),  # the same version,
+                      key=lambda i: (i.rsplit("-v", 1)[-1] == version, i.rsplit("-v", 1)[-1].zfill(4)),
+                      reverse=True)  # then the newest first
+    candidates = list(dict.fromkeys(versions + difflib.get_close_matches(env_id, list(gym.envs.registry), n=6)))
+    return [i for i in candidates if i != env_id and makeable(i)][:3]
+
+
 def check_env_id(env_id: str, examples: str = "Ant-v4, Hopper-v5") -> None:
     if env_id not in gym.envs.registry:
-        import difflib
-
-        base = env_id.split("-v")[0].lower()
-        version = env_id.rsplit("-v", 1)[-1] if "-v" in env_id else None
-        versions = sorted((i for i in gym.envs.registry if i.split("-v")[0].lower() == base),  # the same version,
-                          key=lambda i: (i.rsplit("-v", 1)[-1] == version, i.rsplit("-v", 1)[-1].zfill(4)),
-                          reverse=True)  # then the newest first
-        candidates = list(dict.fromkeys(versions + difflib.get_close_matches(env_id, list(gym.envs.registry), n=6)))
-        close = [i for i in candidates if makeable(i)][:3]  # not Hopper-v3, which needs the retired mujoco-py
+        close = makeable_neighbours(env_id)
         hint = f" Did you mean {', '.join(close)}?" if close else ""
         fail(f"unknown env id '{env_id}'.{hint} (see gymnasium's registry, e.g. {examples})")
 
@@ -61,8 +67,9 @@ def probe_spaces(env_id: str, examples: str = "Ant-v4, Hopper-v5") -> tuple[gym.
         probe = gym.make(env_id)
     except (gym.error.DependencyNotInstalled, ImportError) as exc:
         first_line = (str(exc).splitlines() or [""])[0][:200]
+        close = makeable_neighbours(env_id)  # (Hopper-v3: the v4 and v5 that run here)
         fail(f"cannot make {env_id}: {first_line or type(exc).__name__}; install what it needs, or pick another "
-             "--env-id")
+             f"--env-id{' (' + ', '.join(close) + ' can be made here)' if close else ''}")
     spaces = probe.action_space, probe.observation_space
     probe.close()
     return spaces

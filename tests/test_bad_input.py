@@ -367,6 +367,13 @@ def test_an_unknown_env_id_suggests_ids_that_can_be_made_here():
         assert f"unknown env id '{asked}'. Did you mean {suggested}" in str(stop.value), str(stop.value)
         assert "Hopper-v3" not in str(stop.value) and "Hopper-v2" not in str(stop.value)
     assert "Hopper-v3" in gym.envs.registry  # registered all the same: the suggestion filters it out
+    # and asked for itself, the line that it cannot be made names those that can (a fresh-user hunt, 2026-12-08)
+    from cascade_plumbing.envs import probe_spaces
+
+    with pytest.raises(SystemExit) as stop:
+        probe_spaces("Hopper-v3")
+    assert str(stop.value).startswith("error: cannot make Hopper-v3: ") and \
+        str(stop.value).endswith("pick another --env-id (Hopper-v5, Hopper-v4 can be made here)"), str(stop.value)
 
 
 def test_a_flag_given_at_its_default_value_is_checked_too(tmp_path):
