@@ -536,9 +536,11 @@ def check_common_settings(args: Any) -> None:
         check_wandb()
 
 
-# the flags --evaluate uses (each script has those of them it defines; --cuda is accepted: --evaluate runs on the CPU)
+# the flags --evaluate uses (each script has those of them it defines), and two it lets be, so that a job script may
+# pass them to every command: --cuda (--evaluate runs on the CPU) and --quiet (it prints its result line only)
 EVALUATE_FIELDS = {"evaluate", "eval_episodes", "seed", "capture_video", "torch_threads", "members", "deterministic",
-                   "eval_deterministic", "quiet", "cuda"}
+                   "eval_deterministic"}
+EVALUATE_TOLERATED = {"quiet", "cuda"}
 
 
 def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], Any],
@@ -551,7 +553,7 @@ def evaluate_only(args: Any, given: set[str], evaluate_saved: Callable[[Any], An
     if "env_id" in given:
         fail(f"--env-id has no effect with --evaluate: the saved model is evaluated on the env it was trained on "
              f"(saved in {args.evaluate}); leave --env-id out")
-    ignored = sorted(given - EVALUATE_FIELDS)
+    ignored = sorted(given - EVALUATE_FIELDS - EVALUATE_TOLERATED)
     if ignored:
         applying = sorted(EVALUATE_FIELDS & set(type(args).__dataclass_fields__) - {"evaluate"})
         fail(f"--{ignored[0].replace('_', '-')} has no effect with --evaluate: the saved model is evaluated with the "

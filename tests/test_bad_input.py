@@ -211,6 +211,9 @@ def test_evaluate_refuses_flags_it_would_ignore_in_one_line(script, tmp_path):
     for flags, message in cases:
         line = error_line_in_process(f"{script}.py", "--evaluate", saved, *flags)
         assert line.startswith(f"error: {message}"), line
+    # the flags that apply are named; --quiet and --cuda, let be for job scripts, are not among them (a fresh-user hunt)
+    line = error_line_in_process(f"{script}.py", "--evaluate", saved, "--gamma", "0.9")
+    assert "--eval-episodes" in line.partition("apply")[0] and "--quiet" not in line and "--cuda" not in line, line
 
 
 def test_torch_threads_below_one_is_one_line_wherever_it_is_set():
