@@ -929,3 +929,22 @@ def test_analyze_refuses_a_bad_learning_rate_and_names_n1_runs(runs, tmp_path):
     first = os.path.join(runs["cascade"][0], "iteration_1.pt")  # a run of two nets: its later file is the advice
     message = error_of(lambda: analyze.fallback_course(analyze.FallbackCourse(checkpoint=first, out=str(tmp_path))))
     assert message.endswith("pass a later iteration_<i>.pt or the run's checkpoint.pt"), message
+
+
+@pytest.mark.parametrize("settings", [dict(total_timesteps=6_000_000, lr_schedule="cyclic", cycle_steps=1_000_000,
+                                           num_steps=2048),
+                                      dict(total_timesteps=5_000_000, lr_schedule="cyclic", cycle_steps=1_500_000,
+                                           num_steps=2048),
+                                      dict(total_timesteps=6_000_000, lr_schedule="global", num_steps=2048),
+                                      dict(total_timesteps=6_000_000, num_steps=1000)])
+def test_export_plans_the_steps_the_baseline_runs(settings):
+    """export_results.py counted a cyclic baseline's budget as one total (2929 rollouts for 6M steps in cycles of 1M)
+    after the script had moved to whole cycles (2928): the re-run of Fig. 3's baseline was skipped as unfinished.
+    The plan must be the script's own count, from what the run logs."""
+    from cascade_plumbing.ppo import baseline_updates
+    from plots.export_results import planned_steps
+
+    args = ppo_baseline.Args(env_id="Hopper-v4", **settings)
+    batch = args.num_envs * args.num_steps
+    logged = {key: str(value) for key, value in dataclasses.asdict(args).items()}
+    assert planned_steps(logged) == baseline_updates(args, batch) * batch
