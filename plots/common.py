@@ -164,10 +164,28 @@ def read_exported_run(path: str) -> Run:
             run.scalars[tag] = Series(np.array(series["steps"], dtype=np.int64),
                                       np.array(series["values"], dtype=np.float64),
                                       np.array(series["wall_times"], dtype=np.float64))
+            if not len(run.scalars[tag].steps) == len(run.scalars[tag].values) == len(run.scalars[tag].wall_times):
+                raise ValueError(f"{tag} holds {len(series['steps'])} steps and {len(series['values'])} values")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         fail(f"cannot read exported run {path} ({type(exc).__name__}: {exc}); re-export it with plots/export_results.py")
     run.meta = {key: data.get(key) for key in ("command", "commit", "seconds", "final_step")}
+    # as for a run folder, the file name decides the panel, the curve and the seed: a copied or renamed file (a
+    # Walker2d run under Hopper's name, one seed saved as two) is refused, not averaged in (a results-pipeline hunt)
+    name = os.path.basename(path)[: -len(".json")]
+    if data.get("name", name) != name:
+        fail(f"exported run {path} holds the run {data['name']}: a renamed or copied file would count a run under "
+             "another name; re-export the run, or give the file its own name back")
+    check_name_against_settings(run, "exported run")
     return run
+
+
+def check_name_against_settings(run: Run, what: str) -> None:
+    """The env, experiment and seed a run's name gives are those it logged (one line if not)."""
+    for key, from_name in (("env_id", run.env_id), ("exp_name", run.exp_name), ("seed", str(run.seed))):
+        logged = run.hparams.get(key)
+        if logged is not None and logged != from_name:
+            fail(f"{what} {run.path} is named for {key}={from_name} but the run logged {key}={logged}; "
+                 "a renamed or copied run would mix runs of different settings into one panel: give it its own name back")
 
 
 def parse_hparams(text: str) -> dict[str, str]:
@@ -201,11 +219,7 @@ def read_run(path: str) -> Run:
         text = acc.Tensors(HPARAMS_TAG)[0].tensor_proto.string_val[0].decode()
         run.hparams = parse_hparams(text)
     # the folder name decides the panel and the curve: it must agree with what the run logged
-    for key, from_name in (("env_id", env_id), ("exp_name", exp_name), ("seed", str(seed))):
-        logged = run.hparams.get(key)
-        if logged is not None and logged != from_name:
-            fail(f"run folder {path} is named for {key}={from_name} but the run logged {key}={logged}; "
-                 "a renamed or copied folder would mix runs of different settings into one panel: rename it back")
+    check_name_against_settings(run, "run folder")
     return run
 
 

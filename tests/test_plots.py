@@ -948,3 +948,27 @@ def test_export_plans_the_steps_the_baseline_runs(settings):
     batch = args.num_envs * args.num_steps
     logged = {key: str(value) for key, value in dataclasses.asdict(args).items()}
     assert planned_steps(logged) == baseline_updates(args, batch) * batch
+
+
+def test_an_exported_run_under_another_name_or_with_damaged_series_is_one_line(tmp_path):
+    """A results-pipeline hunt: an exported Walker2d run copied under Hopper's name was averaged into Hopper's curve,
+    one seed copied under another seed's name counted twice, and a values list shorter than its steps was cut
+    silently; a run folder refused the first two already."""
+    import json
+
+    source = os.path.join(ROOT, "results", "per_run", "Walker2d-v4__ppo_h16_cyclic__1__1796696625.json")
+    common.read_run(source)  # as committed: read
+    data = json.load(open(source))
+    cases = [("Hopper-v4__ppo_h16_cyclic__1__1796696625.json", data, "holds the run Walker2d-v4__ppo_h16_cyclic__1"),
+             ("Walker2d-v4__ppo_h16_cyclic__2__1796696625.json", data, "holds the run Walker2d-v4__ppo_h16_cyclic__1"),
+             ("Hopper-v4__ppo_h16_cyclic__1__1.json", {**data, "name": "Hopper-v4__ppo_h16_cyclic__1__1"},
+              "is named for env_id=Hopper-v4 but the run logged env_id=Walker2d-v4")]
+    short = json.loads(json.dumps(data))
+    short["scalars"]["eval/episodic_return"]["values"].pop()
+    cases.append((os.path.basename(source), short, "cannot read exported run"))
+    for name, content, message in cases:
+        path = tmp_path / name
+        path.write_text(json.dumps(content))
+        with pytest.raises(SystemExit) as stop:
+            common.read_run(str(path))
+        assert message in str(stop.value) and "\n" not in str(stop.value), stop.value
