@@ -166,6 +166,8 @@ def read_exported_run(path: str) -> Run:
                                       np.array(series["wall_times"], dtype=np.float64))
             if not len(run.scalars[tag].steps) == len(run.scalars[tag].values) == len(run.scalars[tag].wall_times):
                 raise ValueError(f"{tag} holds {len(series['steps'])} steps and {len(series['values'])} values")
+            if tag == "eval/episodic_return" and not len(series["steps"]):  # (export writes evaluated runs only)
+                raise ValueError(f"{tag} is empty")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         fail(f"cannot read exported run {path} ({type(exc).__name__}: {exc}); re-export it with plots/export_results.py")
     run.meta = {key: data.get(key) for key in ("command", "commit", "seconds", "final_step")}

@@ -966,6 +966,9 @@ def test_an_exported_run_under_another_name_or_with_damaged_series_is_one_line(t
     short = json.loads(json.dumps(data))
     short["scalars"]["eval/episodic_return"]["values"].pop()
     cases.append((os.path.basename(source), short, "cannot read exported run"))
+    empty = json.loads(json.dumps(data))  # (reproduce.py ended in a traceback from the final scores)
+    empty["scalars"]["eval/episodic_return"] = {"steps": [], "values": [], "wall_times": []}
+    cases.append((os.path.basename(source), empty, "eval/episodic_return is empty"))
     for name, content, message in cases:
         path = tmp_path / name
         path.write_text(json.dumps(content))
