@@ -147,6 +147,8 @@ def find_run_dirs(roots: Sequence[str]) -> list[str]:
         for folder, _dirs, files in os.walk(os.path.normpath(root)):
             if parse_run_name(os.path.basename(folder)) and has_event_files(folder):
                 found.append(folder)
+            if os.path.basename(folder) == "done" and os.path.isdir(os.path.join(os.path.dirname(folder), "runs")):
+                continue  # sweep.py's completion markers, <run_id>.json: named like a run when the hash is all digits
             found += [os.path.join(folder, f) for f in files if f.endswith(".json") and parse_run_name(f[:-5])]
     return sorted(found)
 

@@ -975,3 +975,20 @@ def test_an_exported_run_under_another_name_or_with_damaged_series_is_one_line(t
         with pytest.raises(SystemExit) as stop:
             common.read_run(str(path))
         assert message in str(stop.value) and "\n" not in str(stop.value), stop.value
+
+
+def test_a_sweeps_completion_markers_are_not_read_as_exported_runs(tmp_path):
+    """sweep.py's done/<env>__<exp>__<seed>__<hash>.json looks like an exported run when the 10-hex hash is all
+    digits (~1 run in 100): `--runs sweeps/x` stopped with "cannot read exported run ... re-export it"."""
+    sweep_dir = tmp_path / "sweep"
+    (sweep_dir / "done").mkdir(parents=True)
+    (sweep_dir / "runs").mkdir()
+    (sweep_dir / "done" / "Hopper-v4__cascade__1__1234567890.json").write_text('{"run_id": "x"}')
+    exported = tmp_path / "per_run"
+    exported.mkdir()
+    shutil.copy(os.path.join(ROOT, "results", "per_run", "Walker2d-v4__ppo_h16_cyclic__1__1796696625.json"), exported)
+    assert common.find_run_dirs([str(sweep_dir)]) == []
+    # a folder named done elsewhere is searched as any other
+    (exported / "done").mkdir()
+    shutil.move(str(exported / "Walker2d-v4__ppo_h16_cyclic__1__1796696625.json"), str(exported / "done"))
+    assert len(common.find_run_dirs([str(exported)])) == 1
