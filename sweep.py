@@ -540,9 +540,9 @@ def expand(args: Args) -> list[Run]:
             if flag_name(flag) in SWEEP_FLAGS:
                 fail(f"'{template}' sets {flag_name(flag)}, which the sweep sets for each run itself: give "
                      "env ids with --envs and seeds with --seeds, and the sweep folder with --sweep-dir")
-            if flag_name(flag) in ("--quiet", "--no-quiet"):  # (--no-quiet was overridden by the --quiet put after it)
-                fail(f"'{template}' sets {flag_name(flag)}: the sweep runs every script with --quiet and shows each "
-                     "run's progress in its own status lines; leave it out")
+            if flag_name(flag) == "--no-quiet":  # (it was overridden by the --quiet put after it, silently)
+                fail(f"'{template}' sets --no-quiet: the sweep runs every script with --quiet and shows each run's "
+                     "progress in its own status lines; leave it out")
             if flag in ("-h", "--help"):
                 fail(f"'{template}' asks for --help, which runs nothing: read the flags with `python {script} --help`")
         canonical = canonical_flags(flags)
