@@ -927,6 +927,18 @@ def sweep() -> None:
     if args.backend == "local" and shutil.which(args.python) is None:  # (on Ray it must exist on the nodes)
         fail(f"--python {args.python} is not an executable (a path, or a name on PATH); pass the interpreter the runs "
              "use (default: this one)")
+    if args.backend == "local" and os.path.abspath(shutil.which(args.python) or "") != os.path.abspath(sys.executable):
+        # another interpreter: it must import what the scripts need (a fault hunt: --python /bin/false ran, and each
+        # run failed at the end with "exit 1" and no word of the interpreter)
+        try:
+            probe = subprocess.run([args.python, "-c", "import torch, gymnasium, tyro"], capture_output=True, text=True,
+                                   timeout=300)
+            problem = None if probe.returncode == 0 else ((probe.stderr.strip().splitlines() or [f"exit {probe.returncode}"])[-1])
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            problem = str(exc)
+        if problem:
+            fail(f"--python {args.python} cannot run the scripts (importing torch, gymnasium and tyro: {problem[:200]}); "
+                 "pass the interpreter of the environment the requirements are installed in (default: this one)")
     track_dir = os.path.join(sweep_dir, "runs")
     tracking = tracking_flags(args, sweep_dir)
     todo, skipped = [], 0

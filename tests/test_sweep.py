@@ -190,7 +190,10 @@ def test_bad_templates_and_scales_are_one_line():
              # (a fresh-user hunt: the sweep's --quiet, put after the template, overrode its --no-quiet silently)
              (["--command", "cascade_sac.py --no-quiet"], "sets --no-quiet: the sweep runs every script with --quiet"),
              (["--command", "ppo_baseline.py -h"], "asks for --help, which runs nothing: read the flags with "
-              "`python ppo_baseline.py --help`")]
+              "`python ppo_baseline.py --help`"),
+             # (a fault hunt: an interpreter that cannot run the scripts was accepted, each run failing with "exit 1")
+             (["--preset", "sac", "--python", "/bin/false"], "--python /bin/false cannot run the scripts (importing "
+              "torch, gymnasium and tyro: exit 1)")]
     for extra, message in cases:
         assert message in error_line(run_script("sweep.py", *extra, "--dry-run")), extra
 
@@ -249,8 +252,10 @@ def test_each_template_is_checked_by_its_script_before_any_run(tmp_path):
     # a --python found on PATH, and a template's own --quiet (the check had cut the command there)
     proc = run_script("sweep.py", "--command", "cascade_sac.py --quiet --n 0", *sweep_dir, "--dry-run")
     assert "--n must be at least 1" in error_line(proc)
-    proc = run_script("sweep.py", "--command", "cascade_sac.py --wandb-entity team", "--track", "--python", "python3",
-                      "--scale", "0.01", *sweep_dir, "--dry-run", env={**os.environ, "WANDB_MODE": "offline"})
+    on_path = {**os.environ, "WANDB_MODE": "offline",  # (the venv's interpreter by name: one that can run the scripts)
+               "PATH": os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")}
+    proc = run_script("sweep.py", "--command", "cascade_sac.py --wandb-entity team", "--track", "--python",
+                      os.path.basename(sys.executable), "--scale", "0.01", *sweep_dir, "--dry-run", env=on_path)
     assert proc.returncode == 0 and "--wandb-entity team" in proc.stdout, proc.stderr
 
 
