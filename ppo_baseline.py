@@ -36,7 +36,7 @@ import torch.nn as nn
 from torch.distributions import Normal
 
 import cascade_plumbing.checkpoints as checkpoints
-from cascade_plumbing.envs import normalize_obs, obs_statistics
+from cascade_plumbing.envs import check_box_env, normalize_obs, obs_statistics
 from cascade_plumbing.errors import fail
 from cascade_plumbing.evaluation import (
     EvaluationEnvs,
@@ -48,7 +48,6 @@ from cascade_plumbing.evaluation import (
 from cascade_plumbing.fast import FastPaths, mlp_ppo_gradients, numpy_mlp_policy, share_one_buffer
 from cascade_plumbing.ppo import (
     baseline_updates,
-    check_box_env,
     check_ppo_settings,
     count_parameters,
     log_ppo_update,

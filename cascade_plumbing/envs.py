@@ -87,6 +87,17 @@ def check_flat_observations(env_id: str, observation_space: gym.Space) -> None:
          "(cascade_plumbing/envs.py)")
 
 
+def check_box_env(env_id: str, discrete_script: str, examples: str = "Ant-v4, Hopper-v5") -> tuple[gym.Space, gym.Space]:
+    """--env-id's (action space, observation space) for a continuous script: registered, observing a flat Box and
+    acting in a Box; otherwise one line (naming `discrete_script`, the caller's discrete twin, for a discrete env)."""
+    action_space, observation_space = probe_spaces(env_id, examples)
+    check_flat_observations(env_id, observation_space)  # first: no script of ours runs an env that fails it
+    if not isinstance(action_space, gym.spaces.Box):
+        fail(f"{env_id} has a {type(action_space).__name__} action space; this script needs a Box "
+             f"(continuous) one: use {discrete_script}")
+    return action_space, observation_space
+
+
 def find_wrapper(env: gym.Env, wrapper_type: type) -> gym.Wrapper | None:
     while isinstance(env, gym.Wrapper):
         if isinstance(env, wrapper_type):

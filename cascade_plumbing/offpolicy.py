@@ -23,7 +23,7 @@ import torch
 import torch.nn as nn
 
 from .checkpoints import non_finite_advice
-from .envs import check_flat_observations, probe_spaces
+from .envs import check_box_env
 from .errors import fail
 from .evaluation import EvaluationEnvs, open_saved_model, save_video_of_one_episode
 from .fast import plain_fused_adam
@@ -101,11 +101,7 @@ def check_replay_settings(args: Any, bounds_needed_because: str, frequencies: di
         fail(f"--tau must lie in (0, 1] (got {args.tau})")
     if args.eval_every < 0 or args.eval_episodes < 1:  # (also with --eval-every 0: a negative count is no setting)
         fail("--eval-every must be >= 0 and --eval-episodes >= 1")
-    action_space, observation_space = probe_spaces(args.env_id, "Hopper-v4, Ant-v5")
-    check_flat_observations(args.env_id, observation_space)
-    if not isinstance(action_space, gym.spaces.Box):
-        fail(f"{args.env_id} has a {type(action_space).__name__} action space; this script needs a Box "
-             "(continuous) one: use cascade_ppo_discrete.py")
+    action_space, observation_space = check_box_env(args.env_id, "cascade_ppo_discrete.py", "Hopper-v4, Ant-v5")
     if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
         fail(f"{args.env_id} has unbounded actions; {bounds_needed_because}")
     rows = buffer_capacity(args.buffer_size, args.n, args.k, args.keep_buffer)

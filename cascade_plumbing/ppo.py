@@ -13,7 +13,7 @@ import torch
 import torch.nn as nn
 
 from . import envs as envs_module
-from .envs import OBS_CLIP, check_flat_observations, probe_spaces
+from .envs import OBS_CLIP
 from .errors import fail
 
 
@@ -69,16 +69,6 @@ def baseline_updates(args: Any, batch_size: int) -> int:
         return args.total_timesteps // batch_size
     cycles, rest = divmod(args.total_timesteps, args.cycle_steps)
     return cycles * (args.cycle_steps // batch_size) + rest // batch_size
-
-
-def check_box_env(env_id: str, discrete_script: str) -> None:
-    """--env-id is registered, observes a flat Box and acts in a Box (continuous) action space; otherwise one line
-    (naming `discrete_script`, the discrete twin of the caller, for a discrete env)."""
-    action_space, observation_space = probe_spaces(env_id)
-    check_flat_observations(env_id, observation_space)  # first: no script of ours runs an env that fails it
-    if not isinstance(action_space, gym.spaces.Box):
-        fail(f"{env_id} has a {type(action_space).__name__} action space; this script needs a Box "
-             f"(continuous) one: use {discrete_script}")
 
 
 def count_parameters(*modules: nn.Module) -> int:

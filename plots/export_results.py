@@ -23,6 +23,7 @@ import os
 import subprocess
 import sys
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -50,19 +51,20 @@ class Args:
 
 def planned_steps(hparams: dict[str, str]) -> int | None:
     """The steps the run does, from its logged settings: whole rollout batches of n*k (Cascade scripts:
-    k // batch per iteration) or of total_timesteps (baselines; under --lr-schedule cyclic whole cycles of
-    cycle_steps // batch, then the rest, as `cascade_plumbing.ppo.baseline_updates` counts); n*k env steps for SAC and DDPG (one env, no
+    k // batch per iteration) or of total_timesteps (baselines: `cascade_plumbing.ppo.baseline_updates`, the
+    scripts' own count); n*k env steps for SAC and DDPG (one env, no
     rollouts: their settings have a warm-up, learning_starts, and no num_steps)."""
     try:
         if "learning_starts" in hparams and "num_steps" not in hparams:
             return int(hparams["n"]) * int(hparams["k"])
         batch = int(hparams["num_envs"]) * int(hparams["num_steps"])
-        if "total_timesteps" in hparams:
-            total = int(hparams["total_timesteps"])
-            if hparams.get("lr_schedule") == "cyclic":  # whole cycles, then the rest (the baselines' own count)
-                cycles, rest = divmod(total, int(hparams["cycle_steps"]))
-                return (cycles * (int(hparams["cycle_steps"]) // batch) + rest // batch) * batch
-            return total // batch * batch
+        if "total_timesteps" in hparams:  # the baselines' own count (under a cyclic LR: whole cycles, then the rest)
+            from cascade_plumbing.ppo import baseline_updates
+
+            cyclic = hparams.get("lr_schedule") == "cyclic"
+            settings = SimpleNamespace(total_timesteps=int(hparams["total_timesteps"]), lr_schedule=hparams.get(
+                "lr_schedule"), cycle_steps=int(hparams["cycle_steps"]) if cyclic else None)
+            return baseline_updates(settings, batch) * batch
         return int(hparams["n"]) * (int(hparams["k"]) // batch) * batch
     except (KeyError, ValueError):
         return None
